@@ -1,0 +1,137 @@
+"""Parquet tables of the pipeline, each with a name and a schema version in its metadata.
+
+Readers refuse a table of another kind or of an unknown major version, and name the file. The
+column contracts are the ones in ARCHITECTURE.md; `docs/data-formats.md` documents them for users.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from pipeline.errors import InputError, Problem
+from pipeline.io.atomic import atomic_file
+
+SCHEMA_VERSION = "1.0"
+_KIND_KEY = b"siteloc.table"
+_VERSION_KEY = b"siteloc.schema_version"
+
+IMAGES = pa.schema(
+    [
+        pa.field("image_id", pa.string(), nullable=False),
+        pa.field("stop_id", pa.string(), nullable=False),
+        pa.field("view", pa.int32(), nullable=False),
+        pa.field("x", pa.float64(), nullable=False),
+        pa.field("y", pa.float64(), nullable=False),
+        pa.field("theta", pa.float64(), nullable=False),
+        pa.field("room", pa.string()),
+        pa.field("area", pa.string()),
+        pa.field("split", pa.string(), nullable=False),
+        pa.field("width", pa.int32(), nullable=False),
+        pa.field("height", pa.int32(), nullable=False),
+        pa.field("sha256", pa.string(), nullable=False),
+    ]
+)
+
+BOXES = pa.schema(
+    [
+        pa.field("image_id", pa.string(), nullable=False),
+        pa.field("class_id", pa.int32(), nullable=False),
+        pa.field("class_name", pa.string(), nullable=False),
+        pa.field("x1", pa.float32(), nullable=False),
+        pa.field("y1", pa.float32(), nullable=False),
+        pa.field("x2", pa.float32(), nullable=False),
+        pa.field("y2", pa.float32(), nullable=False),
+    ]
+)
+
+# One row per laser scan. Odometry is in the robot's odom frame, ground truth in the map frame.
+# A range >= range_max (or non-finite) means "no return".
+RUNS = pa.schema(
+    [
+        pa.field("run", pa.string(), nullable=False),
+        pa.field("step", pa.int32(), nullable=False),
+        pa.field("t", pa.float64(), nullable=False),
+        pa.field("odom_x", pa.float64(), nullable=False),
+        pa.field("odom_y", pa.float64(), nullable=False),
+        pa.field("odom_theta", pa.float64(), nullable=False),
+        pa.field("gt_x", pa.float64()),
+        pa.field("gt_y", pa.float64()),
+        pa.field("gt_theta", pa.float64()),
+        pa.field("ranges", pa.list_(pa.float32()), nullable=False),
+        pa.field("angle_min", pa.float32(), nullable=False),
+        pa.field("angle_increment", pa.float32(), nullable=False),
+        pa.field("range_max", pa.float32(), nullable=False),
+        pa.field("image_id", pa.string()),
+        pa.field("kidnapped", pa.bool_()),
+    ]
+)
+
+SCHEMAS: dict[str, pa.Schema] = {"images": IMAGES, "boxes": BOXES, "runs": RUNS}
+
+
+def _with_metadata(schema: pa.Schema, kind: str, extra: dict[str, str] | None) -> pa.Schema:
+    meta = {_KIND_KEY: kind.encode(), _VERSION_KEY: SCHEMA_VERSION.encode()}
+    for k, v in (extra or {}).items():
+        meta[f"siteloc.{k}".encode()] = str(v).encode()
+    return schema.with_metadata(meta)
+
+
+def to_table(kind: str, columns: dict, metadata: dict[str, str] | None = None) -> pa.Table:
+    """Build a table of `kind` from column arrays, cast to the contract's types."""
+    schema = SCHEMAS[kind]
+    missing = [f.name for f in schema if f.name not in columns]
+    if missing:
+        raise KeyError(f"{kind} table is missing columns {missing}")
+    arrays = [pa.array(columns[f.name], type=f.type) for f in schema]
+    return pa.Table.from_arrays(arrays, schema=_with_metadata(schema, kind, metadata))
+
+
+def write_table(path: Path, table: pa.Table, kind: str, metadata: dict[str, str] | None = None) -> Path:
+    """Write `table` (cast to the `kind` contract) atomically with zstd compression."""
+    merged = {k: v for k, v in table_metadata(table).items() if k not in ("table", "schema_version")}
+    merged.update(metadata or {})
+    schema = _with_metadata(SCHEMAS[kind], kind, merged)
+    table = table.select(schema.names).cast(schema)
+    with atomic_file(Path(path), "wb") as fh:
+        pq.write_table(table, fh, compression="zstd")
+    return Path(path)
+
+
+def table_metadata(table: pa.Table) -> dict[str, str]:
+    """The `siteloc.*` metadata of a table, without the prefix."""
+    return {
+        k.decode()[len("siteloc.") :]: v.decode()
+        for k, v in (table.schema.metadata or {}).items()
+        if k.startswith(b"siteloc.")
+    }
+
+
+def read_table(path: Path, kind: str) -> pa.Table:
+    """Read a table and check its kind, major schema version and columns."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: {kind} table not found", [Problem(str(path), "file is missing", fix="run the stage that writes it")])
+    try:
+        table = pq.read_table(path)
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise InputError(f"{path}: not a readable Parquet file", [Problem(str(path), str(exc))]) from None
+    meta = table.schema.metadata or {}
+    found_kind = meta.get(_KIND_KEY, b"").decode()
+    version = meta.get(_VERSION_KEY, b"").decode()
+    problems = []
+    if found_kind != kind:
+        problems.append(Problem(str(path), f"holds a '{found_kind or 'unknown'}' table, expected '{kind}'"))
+    if version.split(".")[0] != SCHEMA_VERSION.split(".")[0]:
+        problems.append(
+            Problem(str(path), f"schema version '{version or 'none'}' is not readable by this siteloc (reads {SCHEMA_VERSION})",
+                    fix="re-run the stage that wrote it with this version")
+        )
+    missing = [n for n in SCHEMAS[kind].names if n not in table.column_names]
+    if missing:
+        problems.append(Problem(str(path), f"missing columns {missing}"))
+    if problems:
+        raise InputError(f"{path}: not a valid {kind} table", problems)
+    return table.select(SCHEMAS[kind].names).cast(_with_metadata(SCHEMAS[kind], kind, None).with_metadata(meta))

@@ -1,0 +1,33 @@
+"""The `siteloc` command line. Heavy libraries are imported inside commands so `--help` stays fast."""
+
+from __future__ import annotations
+
+import typer
+
+from stages import config_cmd, ingest, ingest_log
+
+app = typer.Typer(
+    name="siteloc",
+    help=(
+        "Indoor localization from a camera and a 2D laser.\n\n"
+        "Offline steps build a site database (ingest, train-detector, extract, train-sequence, evaluate, export); "
+        "the runtime filter localizes a robot against it. Each step reads a config preset (--config) and writes "
+        "its effective config beside its outputs. Errors are reported without tracebacks; add --verbose to see them."
+    ),
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+app.command("ingest", help=ingest.HELP)(ingest.ingest)
+app.command("ingest-log", help=ingest_log.HELP)(ingest_log.ingest_log)
+app.add_typer(config_cmd.app, name="config")
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,72 @@
+"""What every command shares: config options, error handling, the console."""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import traceback
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+ConfigOpt = Annotated[
+    str,
+    typer.Option(
+        "--config",
+        "-c",
+        help="Preset name in configs/ (demo, ci, paper) or a path to a YAML file.",
+        rich_help_panel="Configuration",
+    ),
+]
+SetOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        "-s",
+        help="Override one config key, e.g. --set ingest.split.seed=3 (repeatable).",
+        rich_help_panel="Configuration",
+    ),
+]
+VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Show full tracebacks on errors.")]
+ForceOpt = Annotated[bool, typer.Option("--force", "-f", help="Replace an existing output (atomically).")]
+
+
+def err(message: str) -> None:
+    typer.secho(message, fg=typer.colors.RED, err=True)
+
+
+@contextlib.contextmanager
+def cli_errors(verbose: bool) -> Iterator[None]:
+    """Turn domain errors into a message and exit code 1; tracebacks only with --verbose."""
+    from pipeline.errors import SitelocError
+
+    try:
+        yield
+    except typer.Exit:
+        raise
+    except SitelocError as exc:
+        if verbose:
+            traceback.print_exc()
+        err(f"error: {exc}")
+        raise typer.Exit(1) from None
+    except KeyboardInterrupt:
+        err("interrupted: no partial output was kept; rerun the command to resume")
+        raise typer.Exit(130) from None
+    except Exception as exc:  # an unexpected failure is still reported readably
+        if verbose:
+            traceback.print_exc()
+        else:
+            err(f"error: unexpected {type(exc).__name__}: {exc}\n(rerun with --verbose for the traceback)")
+        raise typer.Exit(1) from None
+
+
+def load(config: str, overrides: list[str] | None):
+    from pipeline.config import load_config
+
+    return load_config(config, overrides or [])
+
+
+def echo_path(label: str, path: Path) -> None:
+    typer.echo(f"{label}: {path}", file=sys.stdout)

@@ -1,0 +1,73 @@
+"""Config presets: every preset validates; unknown keys and bad values name the file and the key."""
+
+from __future__ import annotations
+
+import pytest
+import yaml
+
+from pipeline.config import CONFIG_DIR, SitelocConfig, load_config, write_effective_config
+from pipeline.errors import ConfigError
+
+
+@pytest.mark.parametrize("preset", sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")))
+def test_presets_are_valid(preset):
+    cfg = load_config(preset)
+    assert cfg.preset == preset
+
+
+def test_presets_exist():
+    assert {"demo", "ci", "paper"} <= {p.stem for p in CONFIG_DIR.glob("*.yaml")}
+
+
+def test_unknown_key_names_file_and_key(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump({"ingest": {"split": {"test_fracton": 0.3}}}))
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    text = str(exc.value)
+    assert str(path) in text and "ingest.split.test_fracton" in text and "unknown key" in text
+    assert "test_fraction" in text  # the known keys are offered
+
+
+def test_bad_value_names_key(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump({"ingest_log": {"mapping": {"resolution": -0.05}}}))
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    assert "ingest_log.mapping.resolution" in str(exc.value) and str(path) in str(exc.value)
+
+
+def test_cross_field_rule(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump({"ingest_log": {"mapping": {"free_thresh": 0.8}}}))
+    with pytest.raises(ConfigError, match="free_thresh must be below occupied_thresh"):
+        load_config(path)
+
+
+def test_overrides_and_their_errors():
+    cfg = load_config("demo", ["ingest.split.seed=7", "ingest_log.mapping.resolution=0.1"])
+    assert cfg.ingest.split.seed == 7 and cfg.ingest_log.mapping.resolution == 0.1
+    with pytest.raises(ConfigError, match="expected KEY=VALUE"):
+        load_config("demo", ["ingest.split.seed"])
+    with pytest.raises(ConfigError, match="ingest.split.sed"):
+        load_config("demo", ["ingest.split.sed=1"])
+
+
+def test_unknown_preset_lists_presets():
+    with pytest.raises(ConfigError, match="unknown preset 'nope'.*demo"):
+        load_config("nope")
+
+
+def test_not_yaml(tmp_path):
+    path = tmp_path / "x.yaml"
+    path.write_text("a: [1, 2\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(path)
+
+
+def test_effective_config_round_trips(tmp_path):
+    cfg = load_config("ci", ["seed=3"])
+    write_effective_config(cfg, tmp_path, stage="ingest", inputs={"site": "x"})
+    doc = yaml.safe_load((tmp_path / "config.yaml").read_text())
+    assert doc["stage"] == "ingest" and doc["inputs"] == {"site": "x"}
+    assert SitelocConfig.model_validate(doc["config"]) == cfg
