@@ -9,11 +9,12 @@ STAMP := $(VENV)/.siteloc-installed
 APT_PACKAGES := python3-venv libegl1 libgl1 libgles2 libegl-mesa0 libgl1-mesa-dri
 PYTEST_ARGS ?= -q -n 2
 
-.PHONY: help setup test demo lint clean
+.PHONY: help setup test demo repro lint clean
 
 help:
 	@echo "make test   install everything (venv in $(VENV)) and run the test suite"
 	@echo "make demo   install everything and run the main job (siteloc demo)"
+	@echo "make repro  dvc repro: rerun the DVC stages that are out of date"
 	@echo "make lint   ruff over the code"
 
 system-packages:
@@ -42,6 +43,9 @@ test: $(STAMP)
 
 demo: $(STAMP)
 	$(BIN)/siteloc demo
+
+repro: $(STAMP)
+	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/dvc repro
 
 lint: $(STAMP)
 	$(BIN)/ruff check pipeline stages tests benchmarks

@@ -35,7 +35,9 @@ class Problems:
         self.items: list[Problem] = []
         self.warnings: list[Problem] = []
 
-    def add(self, file, message: str, *, row: int | None = None, fix: str | None = None, key: str | None = None) -> None:
+    def add(
+        self, file, message: str, *, row: int | None = None, fix: str | None = None, key: str | None = None
+    ) -> None:
         self.items.append(Problem(str(file), message, row=row, fix=fix, key=key))
 
     def warn(self, file, message: str, *, row: int | None = None, fix: str | None = None) -> None:
@@ -78,4 +80,6 @@ class InputError(SitelocError):
 
 class OutputExistsError(SitelocError):
     def __init__(self, path: Path):
-        super().__init__(f"{path} already exists; pass --force to replace it (the old one is kept until the new one is complete)")
+        super().__init__(
+            f"{path} already exists; pass --force to replace it (the old one is kept until the new one is complete)"
+        )

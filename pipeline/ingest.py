@@ -53,8 +53,10 @@ def validate_site_dir(root: Path, cfg: IngestConfig, *, progress: bool = True) -
     """Check everything in a capture directory; raise one `InputError` listing every problem."""
     root = Path(root)
     if not root.is_dir():
-        raise InputError(f"{root}: site directory not found",
-                         [Problem(str(root), "not a directory", fix="pass the folder holding site.yaml")])
+        raise InputError(
+            f"{root}: site directory not found",
+            [Problem(str(root), "not a directory", fix="pass the folder holding site.yaml")],
+        )
     problems = Problems()
     site = occ_map = None
     try:
@@ -93,11 +95,17 @@ def validate_site_dir(root: Path, cfg: IngestConfig, *, progress: bool = True) -
     referenced = {r.image for r in rows} | {i for run in runs for i in run.image if i}
     images_dir = root / "images"
     if images_dir.is_dir():
-        stray = [p for p in images_dir.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES
-                 and p.relative_to(root).as_posix() not in referenced]
+        stray = [
+            p
+            for p in images_dir.rglob("*")
+            if p.suffix.lower() in IMAGE_SUFFIXES and p.relative_to(root).as_posix() not in referenced
+        ]
         if stray:
-            problems.warn(images_dir, f"{len(stray)} images are not listed in captures.csv or a run "
-                          f"(e.g. {stray[0].relative_to(root).as_posix()}); they are ignored")
+            problems.warn(
+                images_dir,
+                f"{len(stray)} images are not listed in captures.csv or a run "
+                f"(e.g. {stray[0].relative_to(root).as_posix()}); they are ignored",
+            )
 
     problems.raise_if_any(f"{root}: the capture directory has problems; nothing was written")
     assert site is not None and occ_map is not None
@@ -117,43 +125,68 @@ def _link_or_copy(src: Path, dst: Path, link: bool) -> None:
 
 def _images_table(v: ValidatedSite, split: dict[str, str]):
     rows = v.rows
-    return tables.to_table("images", {
-        "image_id": [r.image for r in rows],
-        "stop_id": [r.stop_id for r in rows],
-        "view": [r.view for r in rows],
-        "x": [r.x for r in rows],
-        "y": [r.y for r in rows],
-        "theta": [r.theta for r in rows],
-        "room": [r.room or None for r in rows],
-        "area": [r.area or None for r in rows],
-        "split": [split[r.stop_id] for r in rows],
-        "width": [v.image_info[r.image][0] for r in rows],
-        "height": [v.image_info[r.image][1] for r in rows],
-        "sha256": [v.image_info[r.image][2] for r in rows],
-    }, metadata={"site": v.site.name})
+    return tables.to_table(
+        "images",
+        {
+            "image_id": [r.image for r in rows],
+            "stop_id": [r.stop_id for r in rows],
+            "view": [r.view for r in rows],
+            "x": [r.x for r in rows],
+            "y": [r.y for r in rows],
+            "theta": [r.theta for r in rows],
+            "room": [r.room or None for r in rows],
+            "area": [r.area or None for r in rows],
+            "split": [split[r.stop_id] for r in rows],
+            "width": [v.image_info[r.image][0] for r in rows],
+            "height": [v.image_info[r.image][1] for r in rows],
+            "sha256": [v.image_info[r.image][2] for r in rows],
+        },
+        metadata={"site": v.site.name},
+    )
 
 
 def _boxes_table(v: ValidatedSite):
     b = v.boxes
-    return tables.to_table("boxes", {
-        "image_id": [x.image_id for x in b], "class_id": [x.class_id for x in b],
-        "class_name": [x.class_name for x in b], "x1": [x.x1 for x in b], "y1": [x.y1 for x in b],
-        "x2": [x.x2 for x in b], "y2": [x.y2 for x in b],
-    }, metadata={"site": v.site.name, "classes": json.dumps(list(v.site.classes))})
+    return tables.to_table(
+        "boxes",
+        {
+            "image_id": [x.image_id for x in b],
+            "class_id": [x.class_id for x in b],
+            "class_name": [x.class_name for x in b],
+            "x1": [x.x1 for x in b],
+            "y1": [x.y1 for x in b],
+            "x2": [x.x2 for x in b],
+            "y2": [x.y2 for x in b],
+        },
+        metadata={"site": v.site.name, "classes": json.dumps(list(v.site.classes))},
+    )
 
 
 def _run_table(run: CaptureRun, site: Site):
     n = len(run.t)
     ranges = np.where(np.isfinite(run.ranges), np.minimum(run.ranges, site.laser.range_max), site.laser.range_max)
     gt = [None if np.isnan(v) else float(v) for v in run.gt.ravel()]
-    return tables.to_table("runs", {
-        "run": [run.name] * n, "step": np.arange(n), "t": run.t,
-        "odom_x": run.odom[:, 0], "odom_y": run.odom[:, 1], "odom_theta": run.odom[:, 2],
-        "gt_x": gt[0::3], "gt_y": gt[1::3], "gt_theta": gt[2::3],
-        "ranges": list(ranges.astype(np.float32)),
-        "angle_min": [site.laser.angle_min] * n, "angle_increment": [site.laser.angle_increment] * n,
-        "range_max": [site.laser.range_max] * n, "image_id": run.image, "kidnapped": run.kidnapped,
-    }, metadata={"site": site.name, "odometry": "recorded"})
+    return tables.to_table(
+        "runs",
+        {
+            "run": [run.name] * n,
+            "step": np.arange(n),
+            "t": run.t,
+            "odom_x": run.odom[:, 0],
+            "odom_y": run.odom[:, 1],
+            "odom_theta": run.odom[:, 2],
+            "gt_x": gt[0::3],
+            "gt_y": gt[1::3],
+            "gt_theta": gt[2::3],
+            "ranges": list(ranges.astype(np.float32)),
+            "angle_min": [site.laser.angle_min] * n,
+            "angle_increment": [site.laser.angle_increment] * n,
+            "range_max": [site.laser.range_max] * n,
+            "image_id": run.image,
+            "kidnapped": run.kidnapped,
+        },
+        metadata={"site": site.name, "odometry": "recorded"},
+    )
 
 
 def _report(v: ValidatedSite, split: dict[str, str]) -> dict:
@@ -167,11 +200,20 @@ def _report(v: ValidatedSite, split: dict[str, str]) -> dict:
         "areas": len({(r.room, r.area) for r in v.rows if r.area}),
         "boxes": len(v.boxes),
         "boxes_per_class": {c: sum(b.class_name == c for b in v.boxes) for c in v.site.classes},
-        "runs": {run.name: {"steps": len(run.t), "images": sum(i is not None for i in run.image),
-                            "with_ground_truth": int(np.sum(~np.isnan(run.gt[:, 0])))} for run in v.runs},
-        "map": {"width_cells": v.occ_map.width, "height_cells": v.occ_map.height,
-                "resolution": v.occ_map.resolution,
-                "free_share": round(float(v.occ_map.free.mean()), 4)},
+        "runs": {
+            run.name: {
+                "steps": len(run.t),
+                "images": sum(i is not None for i in run.image),
+                "with_ground_truth": int(np.sum(~np.isnan(run.gt[:, 0]))),
+            }
+            for run in v.runs
+        },
+        "map": {
+            "width_cells": v.occ_map.width,
+            "height_cells": v.occ_map.height,
+            "resolution": v.occ_map.resolution,
+            "free_share": round(float(v.occ_map.free.mean()), 4),
+        },
         "warnings": [str(w) for w in v.warnings],
     }
 
@@ -194,8 +236,9 @@ def _report_md(rep: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run_ingest(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path], force: bool = False,
-               progress: bool = True) -> Path:
+def run_ingest(
+    cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path], force: bool = False, progress: bool = True
+) -> Path:
     """Validate `inputs['site']` and write `outputs['out']`: images/boxes/runs tables, map, site, report."""
     from tqdm import tqdm
 

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import typer
 
-from stages import config_cmd, ingest, ingest_log
+from stages import config_cmd, demo, ingest, ingest_log
+from stages.common import help_text
 
 app = typer.Typer(
     name="siteloc",
     help=(
         "Indoor localization from a camera and a 2D laser.\n\n"
-        "Offline steps build a site database (ingest, train-detector, extract, train-sequence, evaluate, export); "
-        "the runtime filter localizes a robot against it. Each step reads a config preset (--config) and writes "
+        "Offline steps turn a mapping team's captures and laser logs into a site database; the runtime filter "
+        "localizes a robot against it. Each step reads a config preset (--config) and writes "
         "its effective config beside its outputs. Errors are reported without tracebacks; add --verbose to see them."
     ),
     no_args_is_help=True,
@@ -20,8 +21,9 @@ app = typer.Typer(
     context_settings={"help_option_names": ["-h", "--help"]},
 )
 
-app.command("ingest", help=ingest.HELP)(ingest.ingest)
-app.command("ingest-log", help=ingest_log.HELP)(ingest_log.ingest_log)
+app.command("ingest", help=help_text(ingest.HELP))(ingest.ingest)
+app.command("ingest-log", help=help_text(ingest_log.HELP))(ingest_log.ingest_log)
+app.command("demo", help=help_text(demo.HELP))(demo.demo)
 app.add_typer(config_cmd.app, name="config")
 
 

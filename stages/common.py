@@ -70,3 +70,15 @@ def load(config: str, overrides: list[str] | None):
 
 def echo_path(label: str, path: Path) -> None:
     typer.echo(f"{label}: {path}", file=sys.stdout)
+
+
+def help_text(text: str) -> str:
+    """Join wrapped lines into paragraphs (the terminal re-wraps them); keep indented lines as they are."""
+    out: list[str] = []
+    for block in text.strip().split("\n\n"):
+        lines = block.split("\n")
+        if any(line.startswith("  ") for line in lines):
+            out.append("\n".join(lines))
+        else:
+            out.append(" ".join(line.strip() for line in lines))
+    return "\n\n".join(out)

@@ -29,7 +29,9 @@ Example: siteloc ingest data/office/site --out data/office/ingested
 
 def ingest(
     site_dir: Annotated[Path, typer.Argument(help="Site capture directory (holds site.yaml).", show_default=False)],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output directory for the ingested site.", show_default=False)],
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Output directory for the ingested site.", show_default=False)
+    ],
     config: ConfigOpt = "demo",
     set_: SetOpt = None,
     force: ForceOpt = False,

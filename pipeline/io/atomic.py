@@ -12,12 +12,24 @@ from pathlib import Path
 from pipeline.errors import OutputExistsError
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _publishable(path: str | Path, mode: int) -> None:
+    """mkstemp/mkdtemp create owner-only entries; give the final output the usual umask permissions."""
+    os.chmod(path, mode & ~_umask())
+
+
 @contextlib.contextmanager
 def atomic_file(path: Path, mode: str = "wb") -> Iterator:
     """Open a temporary sibling of `path`; rename it over `path` only if the block completes."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp-write", dir=path.parent)
+    _publishable(tmp, 0o666)
     try:
         with os.fdopen(fd, mode) as fh:
             yield fh
@@ -57,6 +69,7 @@ def atomic_dir(out: Path, *, force: bool = False) -> Iterator[Path]:
     for stale in out.parent.glob(f".{out.name}.tmp-*"):
         shutil.rmtree(stale, ignore_errors=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    _publishable(tmp, 0o777)
     try:
         yield tmp
     except BaseException:

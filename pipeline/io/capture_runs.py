@@ -46,8 +46,9 @@ def _parse_bool(text: str) -> bool | None:
     raise ValueError(f"kidnapped {text!r} is not 0/1")
 
 
-def read_run(run_dir: Path, root: Path, site: Site | None, occ_map: OccupancyMap | None,
-             problems: Problems) -> CaptureRun | None:
+def read_run(
+    run_dir: Path, root: Path, site: Site | None, occ_map: OccupancyMap | None, problems: Problems
+) -> CaptureRun | None:
     name = run_dir.name
     traj_path, scans_path = run_dir / "trajectory.csv", run_dir / "scans.npy"
     if not traj_path.is_file():
@@ -98,8 +99,12 @@ def read_run(run_dir: Path, root: Path, site: Site | None, occ_map: OccupancyMap
     t_arr = np.array(t)
     back = np.nonzero(np.diff(t_arr) <= 0)[0]
     for i in back[:20]:
-        problems.add(traj_path, f"t={t_arr[i + 1]} does not increase (previous {t_arr[i]})", row=lines[i + 1],
-                     fix="rows must be in time order with distinct times")
+        problems.add(
+            traj_path,
+            f"t={t_arr[i + 1]} does not increase (previous {t_arr[i]})",
+            row=lines[i + 1],
+            fix="rows must be in time order with distinct times",
+        )
     gt_arr = np.array(gt)
     if occ_map is not None:
         known = ~np.isnan(gt_arr[:, 0])
@@ -124,8 +129,11 @@ def read_run(run_dir: Path, root: Path, site: Site | None, occ_map: OccupancyMap
                 problems.add(scans_path, f"must be a 2-D float array [steps, beams], got {ranges.dtype} {ranges.shape}")
                 ranges = None
             elif ranges.shape[0] != len(t):
-                problems.add(scans_path, f"has {ranges.shape[0]} scans but trajectory.csv has {len(t)} valid rows",
-                             fix="one scan per trajectory row")
+                problems.add(
+                    scans_path,
+                    f"has {ranges.shape[0]} scans but trajectory.csv has {len(t)} valid rows",
+                    fix="one scan per trajectory row",
+                )
             elif beams is not None and ranges.shape[1] != beams:
                 problems.add(scans_path, f"has {ranges.shape[1]} beams per scan, site.yaml laser.beams is {beams}")
             elif np.any(ranges[np.isfinite(ranges)] < 0):

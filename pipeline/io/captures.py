@@ -19,6 +19,7 @@ import numpy as np
 from pipeline.errors import Problems
 from pipeline.io.map_yaml import OccupancyMap
 from pipeline.io.site import Site
+from pipeline.runtime.motion import wrap_angle
 
 REQUIRED_COLUMNS = ("image", "stop_id", "view", "x", "y", "theta")
 OPTIONAL_COLUMNS = ("room", "area")
@@ -35,10 +36,6 @@ class CaptureRow:
     theta: float
     room: str
     area: str
-
-
-def wrap_angle(a):
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
 def site_relative(root: Path, rel: str) -> Path | None:
@@ -64,8 +61,12 @@ def read_captures(path: Path, problems: Problems) -> list[CaptureRow]:
         header = [h.strip() for h in (reader.fieldnames or [])]
         missing = [c for c in REQUIRED_COLUMNS if c not in header]
         if missing:
-            problems.add(path, f"missing columns {missing} (found {header})", row=1,
-                         fix=f"the header must contain {', '.join(REQUIRED_COLUMNS + OPTIONAL_COLUMNS)}")
+            problems.add(
+                path,
+                f"missing columns {missing} (found {header})",
+                row=1,
+                fix=f"the header must contain {', '.join(REQUIRED_COLUMNS + OPTIONAL_COLUMNS)}",
+            )
             return []
         unknown = [c for c in header if c not in REQUIRED_COLUMNS + OPTIONAL_COLUMNS]
         if unknown:
@@ -94,8 +95,19 @@ def read_captures(path: Path, problems: Problems) -> list[CaptureRow]:
             if bad:
                 problems.add(path, "; ".join(bad), row=line, fix="correct or remove this row")
                 continue
-            rows.append(CaptureRow(line, rec["image"], rec["stop_id"], view, nums["x"], nums["y"], nums["theta"],
-                                   rec.get("room", ""), rec.get("area", "")))
+            rows.append(
+                CaptureRow(
+                    line,
+                    rec["image"],
+                    rec["stop_id"],
+                    view,
+                    nums["x"],
+                    nums["y"],
+                    nums["theta"],
+                    rec.get("room", ""),
+                    rec.get("area", ""),
+                )
+            )
     if not rows and not problems:
         problems.add(path, "no capture rows", fix="a site needs at least one capture stop")
     return rows
@@ -106,16 +118,26 @@ def check_rows(root: Path, csv_path: Path, rows: list[CaptureRow], problems: Pro
     first_line: dict[str, int] = {}
     for r in rows:
         if r.image in first_line:
-            problems.add(csv_path, f"duplicate image id '{r.image}' (first on line {first_line[r.image]})", row=r.line,
-                         fix="list each image once")
+            problems.add(
+                csv_path,
+                f"duplicate image id '{r.image}' (first on line {first_line[r.image]})",
+                row=r.line,
+                fix="list each image once",
+            )
             continue
         first_line[r.image] = r.line
         full = site_relative(root, r.image)
         if full is None:
-            problems.add(csv_path, f"image path '{r.image}' is absolute or leaves the site directory", row=r.line,
-                         fix="use a path relative to the site root, e.g. images/s000_v0.jpg")
+            problems.add(
+                csv_path,
+                f"image path '{r.image}' is absolute or leaves the site directory",
+                row=r.line,
+                fix="use a path relative to the site root, e.g. images/s000_v0.jpg",
+            )
         elif not full.is_file():
-            problems.add(csv_path, f"image '{r.image}' does not exist", row=r.line, fix="add the file or remove the row")
+            problems.add(
+                csv_path, f"image '{r.image}' does not exist", row=r.line, fix="add the file or remove the row"
+            )
 
 
 def check_poses(csv_path: Path, rows: list[CaptureRow], occ_map: OccupancyMap, problems: Problems) -> None:
@@ -128,17 +150,26 @@ def check_poses(csv_path: Path, rows: list[CaptureRow], occ_map: OccupancyMap, p
     value = occ_map.value_at(xy[:, 0], xy[:, 1])
     for r, ins, val in zip(rows, inside, value, strict=True):
         if not ins:
-            problems.add(csv_path, f"pose ({r.x:.2f}, {r.y:.2f}) of '{r.image}' is outside the map", row=r.line,
-                         fix="check the map origin/resolution or the pose's frame")
+            problems.add(
+                csv_path,
+                f"pose ({r.x:.2f}, {r.y:.2f}) of '{r.image}' is outside the map",
+                row=r.line,
+                fix="check the map origin/resolution or the pose's frame",
+            )
         elif val == 100:
-            problems.add(csv_path, f"pose ({r.x:.2f}, {r.y:.2f}) of '{r.image}' is inside a wall (occupied cell)",
-                         row=r.line, fix="check the pose or the map alignment")
+            problems.add(
+                csv_path,
+                f"pose ({r.x:.2f}, {r.y:.2f}) of '{r.image}' is inside a wall (occupied cell)",
+                row=r.line,
+                fix="check the pose or the map alignment",
+            )
         elif val < 0:
             problems.warn(csv_path, f"pose ({r.x:.2f}, {r.y:.2f}) of '{r.image}' is on an unknown map cell", row=r.line)
 
 
-def check_stops(csv_path: Path, rows: list[CaptureRow], site: Site, tol_m: float, tol_deg: float,
-                problems: Problems) -> None:
+def check_stops(
+    csv_path: Path, rows: list[CaptureRow], site: Site, tol_m: float, tol_deg: float, problems: Problems
+) -> None:
     """A stop is one rig placement: one row per rig view, one position, one base heading."""
     offsets = np.array(site.rig.yaw_offsets)
     n_views = len(offsets)
@@ -149,8 +180,12 @@ def check_stops(csv_path: Path, rows: list[CaptureRow], site: Site, tol_m: float
         first = members[0].line
         views = [m.view for m in members]
         if len(members) != n_views:
-            problems.add(csv_path, f"stop '{stop}' has {len(members)} views, the rig has {n_views}", row=first,
-                         fix="every stop needs one image per rig view (site.yaml rig.yaw_offsets_deg)")
+            problems.add(
+                csv_path,
+                f"stop '{stop}' has {len(members)} views, the rig has {n_views}",
+                row=first,
+                fix="every stop needs one image per rig view (site.yaml rig.yaw_offsets_deg)",
+            )
         out_of_range = sorted({v for v in views if not 0 <= v < n_views})
         if out_of_range:
             problems.add(csv_path, f"stop '{stop}' has view numbers {out_of_range} outside 0..{n_views - 1}", row=first)
@@ -160,21 +195,36 @@ def check_stops(csv_path: Path, rows: list[CaptureRow], site: Site, tol_m: float
         xy = np.array([[m.x, m.y] for m in members])
         spread = float(np.max(np.linalg.norm(xy - xy.mean(axis=0), axis=1)))
         if spread > tol_m:
-            problems.add(csv_path, f"views of stop '{stop}' are {spread:.3f} m apart (tolerance {tol_m} m)", row=first,
-                         fix="all views of a stop share the rig position")
+            problems.add(
+                csv_path,
+                f"views of stop '{stop}' are {spread:.3f} m apart (tolerance {tol_m} m)",
+                row=first,
+                fix="all views of a stop share the rig position",
+            )
         valid = [m for m in members if 0 <= m.view < n_views]
         if len(valid) >= 2:
             base = wrap_angle(np.array([m.theta for m in valid]) - offsets[[m.view for m in valid]])
             mean = math.atan2(np.sin(base).mean(), np.cos(base).mean())
             dev = float(np.degrees(np.max(np.abs(wrap_angle(base - mean)))))
             if dev > tol_deg:
-                problems.add(csv_path, f"view headings of stop '{stop}' disagree with the rig yaw offsets by {dev:.1f} deg "
-                             f"(tolerance {tol_deg} deg)", row=first,
-                             fix="theta is the camera heading in radians: stop heading + rig yaw offset of the view")
+                problems.add(
+                    csv_path,
+                    f"view headings of stop '{stop}' disagree with the rig yaw offsets by {dev:.1f} deg "
+                    f"(tolerance {tol_deg} deg)",
+                    row=first,
+                    fix="theta is the camera heading in radians: stop heading + rig yaw offset of the view",
+                )
 
 
-def check_images(root: Path, csv_path: Path, rows: list[CaptureRow], site: Site | None, decode: bool,
-                 problems: Problems, progress: bool = True) -> dict[str, tuple[int, int, str]]:
+def check_images(
+    root: Path,
+    csv_path: Path,
+    rows: list[CaptureRow],
+    site: Site | None,
+    decode: bool,
+    problems: Problems,
+    progress: bool = True,
+) -> dict[str, tuple[int, int, str]]:
     """Open every image; returns image -> (width, height, sha256) for the readable ones."""
     from PIL import Image, UnidentifiedImageError
     from tqdm import tqdm
@@ -192,13 +242,20 @@ def check_images(root: Path, csv_path: Path, rows: list[CaptureRow], site: Site 
                     im.load()
                 w, h = im.size
         except (UnidentifiedImageError, OSError, ValueError) as exc:
-            problems.add(csv_path, f"image '{r.image}' is unreadable: {exc}", row=r.line,
-                         fix="re-export the image as JPEG or PNG")
+            problems.add(
+                csv_path,
+                f"image '{r.image}' is unreadable: {exc}",
+                row=r.line,
+                fix="re-export the image as JPEG or PNG",
+            )
             continue
         if site is not None and (w, h) != (site.camera.width, site.camera.height):
-            problems.add(csv_path, f"image '{r.image}' is {w}x{h}, site.yaml camera is "
-                         f"{site.camera.width}x{site.camera.height}", row=r.line,
-                         fix="resize the image or correct camera.width/height in site.yaml")
+            problems.add(
+                csv_path,
+                f"image '{r.image}' is {w}x{h}, site.yaml camera is {site.camera.width}x{site.camera.height}",
+                row=r.line,
+                fix="resize the image or correct camera.width/height in site.yaml",
+            )
         out[r.image] = (w, h, digest)
     return out
 

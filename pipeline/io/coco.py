@@ -27,15 +27,23 @@ class Box:
     y2: float
 
 
-def read_coco_boxes(path: Path, site: Site | None, sizes: dict[str, tuple[int, int, str]],
-                    known_images: set[str], min_side: float, problems: Problems) -> list[Box]:
+def read_coco_boxes(
+    path: Path,
+    site: Site | None,
+    sizes: dict[str, tuple[int, int, str]],
+    known_images: set[str],
+    min_side: float,
+    problems: Problems,
+) -> list[Box]:
     """Validate and convert COCO annotations; each bad annotation is reported by its index and id."""
     try:
         doc = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         problems.add(path, f"not valid JSON: {exc}", fix="export the annotations as COCO JSON")
         return []
-    if not isinstance(doc, dict) or not all(isinstance(doc.get(k), list) for k in ("images", "annotations", "categories")):
+    if not isinstance(doc, dict) or not all(
+        isinstance(doc.get(k), list) for k in ("images", "annotations", "categories")
+    ):
         problems.add(path, "a COCO file needs lists 'images', 'annotations' and 'categories'")
         return []
 
@@ -46,9 +54,12 @@ def read_coco_boxes(path: Path, site: Site | None, sizes: dict[str, tuple[int, i
             continue
         categories[cat["id"]] = cat["name"]
         if site is not None and cat["name"] not in site.classes:
-            problems.add(path, f"category '{cat['name']}' (id {cat['id']}) is not a class of site.yaml "
-                         f"({', '.join(site.classes)})", key=f"categories[{i}]",
-                         fix="rename the category or add the class to site.yaml classes")
+            problems.add(
+                path,
+                f"category '{cat['name']}' (id {cat['id']}) is not a class of site.yaml ({', '.join(site.classes)})",
+                key=f"categories[{i}]",
+                fix="rename the category or add the class to site.yaml classes",
+            )
 
     images: dict[int, str] = {}
     for i, im in enumerate(doc["images"]):
@@ -57,8 +68,12 @@ def read_coco_boxes(path: Path, site: Site | None, sizes: dict[str, tuple[int, i
             continue
         images[im["id"]] = im["file_name"]
         if im["file_name"] not in known_images:
-            problems.add(path, f"images[{i}] file_name '{im['file_name']}' is not in captures.csv", key=f"images[{i}]",
-                         fix="file_name must be the image path relative to the site root, as in captures.csv")
+            problems.add(
+                path,
+                f"images[{i}] file_name '{im['file_name']}' is not in captures.csv",
+                key=f"images[{i}]",
+                fix="file_name must be the image path relative to the site root, as in captures.csv",
+            )
 
     boxes: list[Box] = []
     for i, ann in enumerate(doc["annotations"]):
@@ -74,14 +89,21 @@ def read_coco_boxes(path: Path, site: Site | None, sizes: dict[str, tuple[int, i
         if file_name is None:
             problems.add(path, f"{where} refers to image_id {ann['image_id']}, which is not in 'images'", key=where)
         bbox = ann["bbox"]
-        if not (isinstance(bbox, list) and len(bbox) == 4 and all(isinstance(v, int | float) and math.isfinite(v)
-                                                                    for v in bbox)):
+        if not (
+            isinstance(bbox, list)
+            and len(bbox) == 4
+            and all(isinstance(v, int | float) and math.isfinite(v) for v in bbox)
+        ):
             problems.add(path, f"{where} bbox must be [x, y, width, height] numbers, got {bbox!r}", key=where)
             continue
         x, y, w, h = (float(v) for v in bbox)
         if w < min_side or h < min_side:
-            problems.add(path, f"{where} box {w:.1f}x{h:.1f} px is smaller than {min_side} px", key=where,
-                         fix="drop degenerate boxes")
+            problems.add(
+                path,
+                f"{where} box {w:.1f}x{h:.1f} px is smaller than {min_side} px",
+                key=where,
+                fix="drop degenerate boxes",
+            )
             continue
         if file_name is None or name is None:
             continue
@@ -89,8 +111,13 @@ def read_coco_boxes(path: Path, site: Site | None, sizes: dict[str, tuple[int, i
             width, height, _ = sizes[file_name]
             # Half a pixel of slack: COCO tools round box edges to pixel centres.
             if x < -0.5 or y < -0.5 or x + w > width + 0.5 or y + h > height + 0.5:
-                problems.add(path, f"{where} box [{x:.1f}, {y:.1f}, {x + w:.1f}, {y + h:.1f}] leaves the "
-                             f"{width}x{height} image '{file_name}'", key=where, fix="clip the box to the image")
+                problems.add(
+                    path,
+                    f"{where} box [{x:.1f}, {y:.1f}, {x + w:.1f}, {y + h:.1f}] leaves the "
+                    f"{width}x{height} image '{file_name}'",
+                    key=where,
+                    fix="clip the box to the image",
+                )
                 continue
         if site is not None and name in site.classes:
             boxes.append(Box(file_name, site.class_id(name), name, x, y, x + w, y + h))

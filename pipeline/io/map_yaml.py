@@ -26,7 +26,7 @@ _KNOWN = set(_REQUIRED) | {"negate", "occupied_thresh", "free_thresh", "mode"}
 
 @dataclass(frozen=True)
 class OccupancyMap:
-    """An occupancy grid: int8 cells, -1 unknown, 0 free, 100 occupied (1..99 only in `scale` maps); row 0 = lowest y."""
+    """Occupancy grid: int8 cells, -1 unknown, 0 free, 100 occupied (1..99 only in `scale` maps); row 0 = lowest y."""
 
     grid: np.ndarray
     resolution: float
@@ -95,7 +95,9 @@ def read_map(yaml_path: Path) -> OccupancyMap:
     """Read a map_server YAML + image. Every problem found is reported at once."""
     yaml_path = Path(yaml_path)
     if not yaml_path.is_file():
-        raise InputError(f"{yaml_path}: map not found", [_problem(yaml_path, "file is missing", fix="add a map_server map.yaml")])
+        raise InputError(
+            f"{yaml_path}: map not found", [_problem(yaml_path, "file is missing", fix="add a map_server map.yaml")]
+        )
     try:
         meta = yaml.safe_load(yaml_path.read_text())
     except yaml.YAMLError as exc:
@@ -110,10 +112,14 @@ def read_map(yaml_path: Path) -> OccupancyMap:
         problems.append(_problem(yaml_path, f"unknown key (known: {', '.join(sorted(_KNOWN))})", key=key))
     res = meta.get("resolution")
     if "resolution" in meta and not (isinstance(res, int | float) and res > 0):
-        problems.append(_problem(yaml_path, f"must be a positive number of metres per pixel, got {res!r}", key="resolution"))
+        problems.append(
+            _problem(yaml_path, f"must be a positive number of metres per pixel, got {res!r}", key="resolution")
+        )
     origin = meta.get("origin")
     if "origin" in meta and not (
-        isinstance(origin, list) and len(origin) == 3 and all(isinstance(v, int | float) and np.isfinite(v) for v in origin)
+        isinstance(origin, list)
+        and len(origin) == 3
+        and all(isinstance(v, int | float) and np.isfinite(v) for v in origin)
     ):
         problems.append(_problem(yaml_path, f"must be [x, y, yaw] numbers, got {origin!r}", key="origin"))
     negate = meta.get("negate", 0)
@@ -124,7 +130,9 @@ def read_map(yaml_path: Path) -> OccupancyMap:
         if not (isinstance(val, int | float) and 0 <= val <= 1):
             problems.append(_problem(yaml_path, f"must be a probability in [0, 1], got {val!r}", key=key))
     if isinstance(occ_t, int | float) and isinstance(free_t, int | float) and free_t >= occ_t:
-        problems.append(_problem(yaml_path, f"free_thresh {free_t} must be below occupied_thresh {occ_t}", key="free_thresh"))
+        problems.append(
+            _problem(yaml_path, f"free_thresh {free_t} must be below occupied_thresh {occ_t}", key="free_thresh")
+        )
     mode = meta.get("mode", "trinary")
     if mode not in _MODES:
         problems.append(_problem(yaml_path, f"must be one of {_MODES}, got {mode!r}", key="mode"))
@@ -177,7 +185,11 @@ def _load_image(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
             arr = np.asarray(im, dtype=np.float64)
             arr = arr * (255.0 / max(arr.max(), 1.0)) if arr.max() > 255 else arr
             return arr, alpha
-        gray = np.asarray(im.convert("RGB"), dtype=np.float64).mean(axis=2) if im.mode != "L" else np.asarray(im, dtype=np.float64)
+        gray = (
+            np.asarray(im.convert("RGB"), dtype=np.float64).mean(axis=2)
+            if im.mode != "L"
+            else np.asarray(im, dtype=np.float64)
+        )
     return gray, alpha
 
 

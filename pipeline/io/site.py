@@ -103,7 +103,10 @@ def read_site(path: Path) -> Site:
     """Read and validate site.yaml; every problem is reported with its key."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: site description missing", [Problem(str(path), "file is missing", fix="write a site.yaml (see docs/capture-format.md)")])
+        raise InputError(
+            f"{path}: site description missing",
+            [Problem(str(path), "file is missing", fix="write a site.yaml (see docs/capture-format.md)")],
+        )
     try:
         raw = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:

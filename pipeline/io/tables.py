@@ -113,7 +113,10 @@ def read_table(path: Path, kind: str) -> pa.Table:
     """Read a table and check its kind, major schema version and columns."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: {kind} table not found", [Problem(str(path), "file is missing", fix="run the stage that writes it")])
+        raise InputError(
+            f"{path}: {kind} table not found",
+            [Problem(str(path), "file is missing", fix="run the stage that writes it")],
+        )
     try:
         table = pq.read_table(path)
     except (pa.ArrowInvalid, OSError) as exc:
@@ -126,8 +129,11 @@ def read_table(path: Path, kind: str) -> pa.Table:
         problems.append(Problem(str(path), f"holds a '{found_kind or 'unknown'}' table, expected '{kind}'"))
     if version.split(".")[0] != SCHEMA_VERSION.split(".")[0]:
         problems.append(
-            Problem(str(path), f"schema version '{version or 'none'}' is not readable by this siteloc (reads {SCHEMA_VERSION})",
-                    fix="re-run the stage that wrote it with this version")
+            Problem(
+                str(path),
+                f"schema version '{version or 'none'}' is not readable by this siteloc (reads {SCHEMA_VERSION})",
+                fix="re-run the stage that wrote it with this version",
+            )
         )
     missing = [n for n in SCHEMAS[kind].names if n not in table.column_names]
     if missing:

@@ -45,8 +45,18 @@ def test_row_zero_is_the_bottom_of_the_image(tmp_path):
 def test_map_server_thresholds(tmp_path, negate):
     values = np.arange(256, dtype=np.uint8).reshape(16, 16)
     Image.fromarray(values, mode="L").save(tmp_path / "g.pgm")
-    (tmp_path / "g.yaml").write_text(yaml.safe_dump({"image": "g.pgm", "resolution": 0.1, "origin": [0, 0, 0],
-                                                      "negate": negate, "occupied_thresh": 0.65, "free_thresh": 0.196}))
+    (tmp_path / "g.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "image": "g.pgm",
+                "resolution": 0.1,
+                "origin": [0, 0, 0],
+                "negate": negate,
+                "occupied_thresh": 0.65,
+                "free_thresh": 0.196,
+            }
+        )
+    )
     m = read_map(tmp_path / "g.yaml")
     v = values[::-1].astype(float)
     p = v / 255 if negate else (255 - v) / 255  # map_server's occupancy probability
@@ -56,16 +66,20 @@ def test_map_server_thresholds(tmp_path, negate):
 
 def test_scale_mode_keeps_intermediate_values(tmp_path):
     Image.fromarray(np.array([[0, 128, 254]], dtype=np.uint8), mode="L").save(tmp_path / "s.pgm")
-    (tmp_path / "s.yaml").write_text(yaml.safe_dump({"image": "s.pgm", "resolution": 1, "origin": [0, 0, 0],
-                                                      "mode": "scale", "negate": 0}))
+    (tmp_path / "s.yaml").write_text(
+        yaml.safe_dump({"image": "s.pgm", "resolution": 1, "origin": [0, 0, 0], "mode": "scale", "negate": 0})
+    )
     grid = read_map(tmp_path / "s.yaml").grid
     assert grid[0, 0] == OCCUPIED and grid[0, 2] == FREE and 1 <= grid[0, 1] <= 99
 
 
 @settings(max_examples=50, deadline=None)
 @given(
-    x=st.floats(-20, 20), y=st.floats(-20, 20), yaw=st.floats(-math.pi, math.pi),
-    ox=st.floats(-5, 5), oy=st.floats(-5, 5),
+    x=st.floats(-20, 20),
+    y=st.floats(-20, 20),
+    yaw=st.floats(-math.pi, math.pi),
+    ox=st.floats(-5, 5),
+    oy=st.floats(-5, 5),
 )
 def test_world_cell_round_trip(x, y, yaw, ox, oy):
     m = OccupancyMap(grid=np.zeros((10, 10), dtype=np.int8), resolution=0.1, origin_x=ox, origin_y=oy, origin_yaw=yaw)

@@ -13,17 +13,47 @@ from pipeline.io import tables
 
 def sample(kind: str) -> dict:
     if kind == "images":
-        return {"image_id": ["images/a.jpg", "images/b.jpg"], "stop_id": ["s0", "s0"], "view": [0, 1],
-                "x": [1.0, 1.0], "y": [2.0, 2.0], "theta": [0.0, 1.047], "room": ["r1", None], "area": ["a", None],
-                "split": ["train", "train"], "width": [640, 640], "height": [480, 480], "sha256": ["0" * 64, "1" * 64]}
+        return {
+            "image_id": ["images/a.jpg", "images/b.jpg"],
+            "stop_id": ["s0", "s0"],
+            "view": [0, 1],
+            "x": [1.0, 1.0],
+            "y": [2.0, 2.0],
+            "theta": [0.0, 1.047],
+            "room": ["r1", None],
+            "area": ["a", None],
+            "split": ["train", "train"],
+            "width": [640, 640],
+            "height": [480, 480],
+            "sha256": ["0" * 64, "1" * 64],
+        }
     if kind == "boxes":
-        return {"image_id": ["images/a.jpg"], "class_id": [3], "class_name": ["chair"], "x1": [1.5], "y1": [2.0],
-                "x2": [10.0], "y2": [20.25]}
-    return {"run": ["r", "r"], "step": [0, 1], "t": [0.0, 0.1], "odom_x": [0.0, 0.1], "odom_y": [0.0, 0.0],
-            "odom_theta": [0.0, 0.01], "gt_x": [1.0, None], "gt_y": [2.0, None], "gt_theta": [0.5, None],
-            "ranges": [np.array([1.0, 2.5, 30.0], dtype=np.float32), np.array([1.1, 2.4, 29.0], dtype=np.float32)],
-            "angle_min": [-2.35, -2.35], "angle_increment": [0.1, 0.1], "range_max": [30.0, 30.0],
-            "image_id": ["images/a.jpg", None], "kidnapped": [False, None]}
+        return {
+            "image_id": ["images/a.jpg"],
+            "class_id": [3],
+            "class_name": ["chair"],
+            "x1": [1.5],
+            "y1": [2.0],
+            "x2": [10.0],
+            "y2": [20.25],
+        }
+    return {
+        "run": ["r", "r"],
+        "step": [0, 1],
+        "t": [0.0, 0.1],
+        "odom_x": [0.0, 0.1],
+        "odom_y": [0.0, 0.0],
+        "odom_theta": [0.0, 0.01],
+        "gt_x": [1.0, None],
+        "gt_y": [2.0, None],
+        "gt_theta": [0.5, None],
+        "ranges": [np.array([1.0, 2.5, 30.0], dtype=np.float32), np.array([1.1, 2.4, 29.0], dtype=np.float32)],
+        "angle_min": [-2.35, -2.35],
+        "angle_increment": [0.1, 0.1],
+        "range_max": [30.0, 30.0],
+        "image_id": ["images/a.jpg", None],
+        "kidnapped": [False, None],
+    }
 
 
 @pytest.mark.parametrize("kind", ["images", "boxes", "runs"])

@@ -1,0 +1,209 @@
+"""`run_ingest_log`: a CARMEN laser log -> runs table, occupancy map, preview and report.
+
+The corrected logs give the ground-truth trajectory only, so the map is built with known poses from
+it, and the odometry a localizer will see is synthesised from the ground truth with seeded noise.
+Everything is written into a temporary directory that replaces `out` only when complete, and the
+outputs hold no timestamps: the same log, config and seed give byte-identical files.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import SitelocConfig, write_effective_config
+from pipeline.errors import InputError, Problem
+from pipeline.io.atomic import atomic_dir, write_text_atomic
+from pipeline.io.carmen import CarmenLog, read_carmen
+from pipeline.io.map_yaml import OccupancyMap, write_map
+from pipeline.io.odometry import noise_json, relative_to_first, synthesise_odometry
+from pipeline.io.tables import to_table, write_table
+from pipeline.mapping.occupancy import build_occupancy_map, endpoint_occupied_share
+from pipeline.mapping.preview import write_preview
+
+STAGE = "ingest-log"
+
+
+def run_name(log_path: Path) -> str:
+    """`intel-corrected.log.gz` -> `intel-corrected`: the file name without `.gz` and `.log`."""
+    name = Path(log_path).name
+    for suffix in (".gz", ".log"):
+        if name.endswith(suffix) and len(name) > len(suffix):
+            name = name[: -len(suffix)]
+    return name
+
+
+def _runs_table(run: str, log: CarmenLog, odom: np.ndarray):
+    n = log.n_scans
+    columns = {
+        "run": [run] * n,
+        "step": np.arange(n, dtype=np.int32),
+        "t": log.t,
+        "odom_x": odom[:, 0],
+        "odom_y": odom[:, 1],
+        "odom_theta": odom[:, 2],
+        "gt_x": log.poses[:, 0],
+        "gt_y": log.poses[:, 1],
+        "gt_theta": log.poses[:, 2],
+        "ranges": list(log.ranges),
+        "angle_min": np.full(n, log.angle_min, dtype=np.float32),
+        "angle_increment": np.full(n, log.angle_increment, dtype=np.float32),
+        "range_max": np.full(n, log.range_max, dtype=np.float32),
+        "image_id": [None] * n,
+        "kidnapped": np.zeros(n, dtype=bool),
+    }
+    return to_table("runs", columns)
+
+
+def _r(value: float, digits: int = 4) -> float:
+    return round(float(value), digits)
+
+
+def build_report(
+    run: str,
+    log: CarmenLog,
+    odom: np.ndarray,
+    occ_map: OccupancyMap,
+    shares: tuple[float, float],
+    cfg: SitelocConfig,
+) -> dict:
+    """The numbers a person checks after ingesting a log (also the source of report.md)."""
+    xy = log.poses[:, :2]
+    span = xy.max(axis=0) - xy.min(axis=0)
+    gt_rel = relative_to_first(log.poses)
+    drift = float(np.hypot(*(odom[-1, :2] - gt_rel[-1, :2])))
+    res = occ_map.resolution
+    return {
+        "run": run,
+        "source": log.path.name,
+        "scans": log.n_scans,
+        "beams": log.n_beams,
+        "angle_min_deg": _r(np.degrees(log.angle_min)),
+        "angle_increment_deg": _r(np.degrees(log.angle_increment), 6),
+        "range_max_m": _r(log.range_max),
+        "no_return_share": _r(log.no_return_count / log.ranges.size),
+        "time_source": log.time_source,
+        "path_length_m": _r(np.hypot(*np.diff(xy, axis=0).T).sum(), 2),
+        "trajectory_extent_m": [_r(span[0], 2), _r(span[1], 2)],
+        "map_size_cells": [occ_map.width, occ_map.height],
+        "map_size_m": [_r(occ_map.width * res, 2), _r(occ_map.height * res, 2)],
+        "map_resolution_m": res,
+        "map_origin": [occ_map.origin_x, occ_map.origin_y, occ_map.origin_yaw],
+        "map_cells_occupied_share": _r(occ_map.occupied.mean()),
+        "map_cells_free_share": _r(occ_map.free.mean()),
+        "endpoint_on_occupied_share_tol0": _r(shares[0]),
+        "endpoint_on_occupied_share_tol1": _r(shares[1]),
+        "odometry": "synthesised",
+        "odometry_seed": cfg.ingest_log.seed,
+        "odometry_noise": cfg.ingest_log.odometry_noise.model_dump(mode="json"),
+        "odometry_drift_end_m": _r(drift, 3),
+        "skipped_lines": log.skipped_lines,
+        "skipped_line_problems": [f"line {p.row}: {p.message}" for p in log.skipped],
+        "message_counts": log.message_counts,
+        "unknown_message_types": log.unknown_messages,
+    }
+
+
+def report_markdown(report: dict) -> str:
+    rows = [
+        ("source", report["source"]),
+        ("scans x beams", f"{report['scans']} x {report['beams']}"),
+        ("beam angles", f"{report['angle_min_deg']:g} deg + i * {report['angle_increment_deg']:g} deg"),
+        (
+            "no-return readings",
+            f"{100 * report['no_return_share']:.1f} % (stored as range_max = {report['range_max_m']:g} m)",
+        ),
+        ("time source", report["time_source"]),
+        ("path length", f"{report['path_length_m']:.1f} m"),
+        ("trajectory extent", "{} x {} m".format(*report["trajectory_extent_m"])),
+        (
+            "map size",
+            "{} x {} cells = {} x {} m".format(*report["map_size_cells"], *report["map_size_m"])
+            + f" at {report['map_resolution_m']:g} m",
+        ),
+        (
+            "endpoints on occupied cells",
+            f"{report['endpoint_on_occupied_share_tol0']:.3f} exact, "
+            f"{report['endpoint_on_occupied_share_tol1']:.3f} within 1 cell",
+        ),
+        (
+            "odometry",
+            f"synthesised, seed {report['odometry_seed']}, drift at end {report['odometry_drift_end_m']:.2f} m",
+        ),
+        ("skipped malformed lines", str(report["skipped_lines"])),
+        ("messages", ", ".join(f"{k} {v}" for k, v in report["message_counts"].items())),
+    ]
+    lines = [f"# ingest-log: {report['run']}", "", "| quantity | value |", "| --- | --- |"]
+    lines += [f"| {k} | {v} |" for k, v in rows]
+    if report["skipped_line_problems"]:
+        lines += ["", "## Skipped lines", ""] + [f"- {p}" for p in report["skipped_line_problems"]]
+    return "\n".join(lines) + "\n"
+
+
+def run_ingest_log(
+    cfg: SitelocConfig,
+    *,
+    inputs: dict,
+    outputs: dict,
+    force: bool = False,
+    skip_bad_lines: bool = False,
+    progress: bool = True,
+) -> Path:
+    """Ingest `inputs["log"]` into `outputs["out"]`; returns the output directory.
+
+    Writes runs/<run>.parquet, map.yaml + map.pgm, preview.png, report.json + report.md, config.yaml.
+    `progress` shows a tqdm bar while mapping. Raises `InputError` for a missing or malformed log and
+    `OutputExistsError` if `out` exists without `force`; `out` is untouched on any failure.
+    """
+    log_path, out = Path(inputs["log"]), Path(outputs["out"])
+    if not log_path.is_file():
+        raise InputError(
+            f"{log_path}: CARMEN log not found",
+            [
+                Problem(
+                    str(log_path),
+                    "file is missing",
+                    fix="give the path of a .log or .log.gz file, e.g. ../shared/data/carmen/intel-corrected.log.gz",
+                )
+            ],
+        )
+    section = cfg.ingest_log
+    run = run_name(log_path)
+    with atomic_dir(out, force=force) as tmp:
+        log = read_carmen(log_path, section.laser, skip_bad_lines=skip_bad_lines)
+        odom = synthesise_odometry(log.poses, section.odometry_noise, section.seed)
+        (tmp / "runs").mkdir()
+        write_table(
+            tmp / "runs" / f"{run}.parquet",
+            _runs_table(run, log, odom),
+            "runs",
+            metadata={
+                "odometry": "synthesised",
+                "odometry_noise": noise_json(section.odometry_noise),
+                "odometry_seed": str(section.seed),
+                "source": log_path.name,
+                "time_source": log.time_source,
+            },
+        )
+        geometry = (log.angle_min, log.angle_increment, log.range_max)
+        occ_map = build_occupancy_map(log.poses, log.ranges, *geometry, section.mapping, progress=progress)
+        write_map(tmp / "map.yaml", occ_map)
+        shares = tuple(
+            endpoint_occupied_share(
+                occ_map, log.poses, log.ranges, *geometry, tol, max_range=section.mapping.max_range_m
+            )
+            for tol in (0, 1)
+        )
+        report = build_report(run, log, odom, occ_map, shares, cfg)
+        write_text_atomic(tmp / "report.json", json.dumps(report, indent=2) + "\n")
+        write_text_atomic(tmp / "report.md", report_markdown(report))
+        title = (
+            f"{run}: {log.n_scans} scans x {log.n_beams} beams, {report['path_length_m']:.0f} m path, "
+            f"{occ_map.width}x{occ_map.height} cells @ {occ_map.resolution:g} m\n"
+            f"endpoints on occupied cells: {shares[0]:.3f} (exact), {shares[1]:.3f} (within 1 cell)"
+        )
+        write_preview(tmp / "preview.png", occ_map, log.poses, title)
+        write_effective_config(cfg, tmp, stage=STAGE, inputs={"log": log_path})
+    return out

@@ -1,0 +1,1 @@
+"""Map building from laser scans with known poses."""

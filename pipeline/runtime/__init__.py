@@ -1,0 +1,1 @@
+"""The on-robot runtime (particle filter and its models). numpy only: never import torch here."""

@@ -1,0 +1,46 @@
+"""`siteloc demo`: runs the chain on a folder of logs and the example site, resumes, and redoes with --force."""
+
+from __future__ import annotations
+
+import json
+
+from typer.testing import CliRunner
+
+from stages.app import app
+from tests.fixtures.carmen_logs import room_log_lines, write_log
+
+runner = CliRunner()
+
+
+def test_demo_runs_resumes_and_forces(tmp_path):
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    write_log(logs / "room-corrected.log.gz", room_log_lines(20))
+    data = tmp_path / "data"
+    args = ["demo", "--data", str(data), "--carmen-dir", str(logs), "--config", "ci"]
+
+    first = runner.invoke(app, args)
+    assert first.exit_code == 0, first.output
+    assert (data / "carmen" / "room-corrected" / "map.yaml").is_file()
+    assert (data / "example" / "ingested" / "images.parquet").is_file()
+    summary = json.loads((data / "demo-summary.json").read_text())
+    assert summary["ingest-log room-corrected"]["report"]["scans"] == 20
+    assert not any(step["reused"] for step in summary.values())
+
+    map_pgm = data / "carmen" / "room-corrected" / "map.pgm"
+    mtime = map_pgm.stat().st_mtime_ns
+    second = runner.invoke(app, args)
+    assert second.exit_code == 0 and "reused" in second.output
+    assert map_pgm.stat().st_mtime_ns == mtime
+    assert all(step["reused"] for step in json.loads((data / "demo-summary.json").read_text()).values())
+
+    forced = runner.invoke(app, [*args, "--force"])
+    assert forced.exit_code == 0
+    assert not any(step["reused"] for step in json.loads((data / "demo-summary.json").read_text()).values())
+
+
+def test_demo_without_logs_warns_and_ingests_the_example(tmp_path):
+    result = runner.invoke(app, ["demo", "--data", str(tmp_path / "d"), "--carmen-dir", str(tmp_path / "none")])
+    assert result.exit_code == 0, result.output
+    assert "no CARMEN logs" in result.output
+    assert (tmp_path / "d" / "example" / "ingested" / "report.json").is_file()
