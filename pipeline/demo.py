@@ -42,7 +42,7 @@ def run_demo(
 ) -> list[DemoStep]:
     """Run the chain into `outputs['data']`; returns one entry per step with its report."""
     from pipeline.ingest import run_ingest
-    from pipeline.ingest_log import run_ingest_log
+    from pipeline.ingest_log import run_ingest_log, run_name
 
     inputs = inputs or {}
     carmen_dir = Path(inputs.get("carmen_dir", DEFAULT_CARMEN_DIR))
@@ -52,7 +52,7 @@ def run_demo(
 
     logs = sorted(carmen_dir.glob("*.log.gz")) + sorted(carmen_dir.glob("*.log")) if carmen_dir.is_dir() else []
     for log in logs:
-        name = log.name.removesuffix(".gz").removesuffix(".log")
+        name = run_name(log)
         out = data / "carmen" / name
         reused = _complete(out) and not force
         if not reused:
