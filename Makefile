@@ -6,7 +6,7 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.siteloc-installed
 # System packages: Python's venv module and, for the headless renderer of the reference site, EGL on Mesa.
-APT_PACKAGES := python3-venv libegl1 libgl1 libgles2 libegl-mesa0 libgl1-mesa-dri
+APT_PACKAGES := python3-venv libegl1 libgl1 libgles2 libegl-mesa0 libgl1-mesa-dri sweethome3d-furniture
 PYTEST_ARGS ?= -q -n 2
 
 .PHONY: help setup test demo repro lint clean
@@ -32,6 +32,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q --upgrade pip
 	# torch/torchvision are pinned in pyproject.toml; pip takes them from the local wheel cache when it has them.
 	$(BIN)/python -m pip install -q -e '.[dev,benchmarks,dvc]'
+	$(BIN)/python -m pipeline.sitegen.install_assets
 	@touch $(STAMP)
 
 setup: $(STAMP)

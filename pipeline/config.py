@@ -99,13 +99,13 @@ class SitelocConfig(Strict):
     ingest_log: IngestLogConfig = IngestLogConfig()
 
 
-def _format_validation_error(source: str, err: ValidationError) -> str:
+def format_validation_error(source: str, err: ValidationError, root: type[BaseModel] | None = None) -> str:
     lines = [f"{source}: invalid configuration"]
     for e in err.errors():
         key = ".".join(str(p) for p in e["loc"]) or "<top level>"
         msg = e["msg"]
         if e["type"] == "extra_forbidden":
-            parent = _model_at(SitelocConfig, e["loc"][:-1])
+            parent = _model_at(root or SitelocConfig, e["loc"][:-1])
             known = ", ".join(sorted(parent.model_fields)) if parent else "?"
             msg = f"unknown key (known keys here: {known})"
         else:
@@ -167,7 +167,7 @@ def load_config(preset: str | Path = "demo", overrides: list[str] | None = None)
     try:
         return SitelocConfig.model_validate(raw)
     except ValidationError as err:
-        raise ConfigError(_format_validation_error(source, err)) from None
+        raise ConfigError(format_validation_error(source, err)) from None
 
 
 def write_effective_config(cfg: SitelocConfig, out_dir: Path, *, stage: str, inputs: dict | None = None) -> Path:

@@ -1,0 +1,67 @@
+"""Environment change: the same building some months later (the case of a team retraining after a change).
+
+Walls, doors and windows stay; furniture moves (chairs and bins shift, some desks are turned), posters
+are replaced or taken down and new ones hung, some plants go, and the lighting differs (a global
+exposure and tint shift applied by the renderer). Everything is seeded, so the changed site is
+reproducible too.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from pipeline.sitegen.scene import Scene, SceneObject
+
+MOVABLE = {"chair", "trash_bin", "plant"}
+
+
+@dataclass(frozen=True)
+class ChangeSpec:
+    move_share: float = 0.6  # movable objects that move
+    move_m: tuple[float, float] = (0.2, 0.9)  # how far
+    poster_replace_share: float = 0.5
+    poster_remove_share: float = 0.15
+    plant_remove_share: float = 0.3
+    exposure_gain: float = 0.85  # the changed site's lighting is dimmer and warmer
+    tint: tuple[float, float, float] = (1.05, 1.0, 0.9)
+
+
+def change_scene(scene: Scene, seed: int, spec: ChangeSpec = ChangeSpec(), poster_pictures: int = 12) -> Scene:
+    """A changed copy of `scene`: moved furniture, new and removed posters, fewer plants.
+
+    Instance ids are renumbered densely; the returned scene's `name` gains a `-changed` suffix.
+    """
+    rng = np.random.default_rng(seed + 104729)
+    kept: list[SceneObject] = []
+    for obj in scene.objects:
+        if obj.cls == "plant" and rng.random() < spec.plant_remove_share:
+            continue
+        if obj.cls == "poster":
+            u = rng.random()
+            if u < spec.poster_remove_share:
+                continue
+            if u < spec.poster_remove_share + spec.poster_replace_share:
+                obj = replace(obj, texture=int(rng.integers(0, poster_pictures)))
+        elif obj.cls in MOVABLE and rng.random() < spec.move_share:
+            angle = rng.uniform(-math.pi, math.pi)
+            dist = rng.uniform(*spec.move_m)
+            candidate = replace(obj, x=obj.x + dist * math.cos(angle), y=obj.y + dist * math.sin(angle),
+                                yaw=obj.yaw + rng.normal(0, 0.6))
+            # Only moves that stay inside the object's room and clear of walls are taken.
+            room = next((r for r in scene.rooms if r.name == obj.room), None)
+            if room is not None and room.rect.contains(candidate.x, candidate.y, margin=0.45):
+                obj = candidate
+        kept.append(obj)
+    # New posters on corridor walls: copies of existing posters slid along their wall with new pictures.
+    posters = [o for o in kept if o.cls == "poster" and o.room.startswith("corridor")]
+    for obj in rng.permutation(len(posters))[: max(1, len(posters) // 5)] if posters else []:
+        src = posters[int(obj)]
+        along = rng.uniform(0.8, 1.6) * rng.choice([-1, 1])
+        dx, dy = -math.sin(src.yaw), math.cos(src.yaw)
+        kept.append(replace(src, x=src.x + along * dx, y=src.y + along * dy,
+                            texture=int(rng.integers(0, poster_pictures))))
+    objects = [replace(o, instance_id=i + 1) for i, o in enumerate(kept)]
+    return replace(scene, name=f"{scene.name}-changed", objects=objects)

@@ -1,0 +1,264 @@
+"""Stage `synth`: generate, render and write a reference site as a capture directory `siteloc ingest` takes.
+
+Order of work: floor plan and objects (seeded) -> optional environment change -> occupancy map and
+capture stops -> 6 rendered views per stop with COCO boxes from the instance buffer -> mapping and
+query runs with laser scans (cast on the map plus unmapped people and moved chairs), noisy odometry,
+an image per step and kidnappings -> site.yaml, captures.csv, annotations.json, runs/, a contact sheet
+and a report. Everything goes to a temporary directory that becomes `out` only when complete.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from pipeline.io.atomic import atomic_dir, write_text_atomic
+from pipeline.io.map_yaml import write_map
+from pipeline.sitegen.presets import SitePreset
+
+JPEG_QUALITY = 92
+
+
+def intrinsics_of(preset: SitePreset):
+    from pipeline.sitegen.camera import Intrinsics
+
+    cam = preset.camera
+    fx = (cam.width / 2) / math.tan(math.radians(cam.hfov_deg) / 2)
+    return Intrinsics(cam.width, cam.height, fx, fx, cam.width / 2, cam.height / 2)
+
+
+def site_yaml(preset: SitePreset, scene_name: str) -> dict:
+    k = intrinsics_of(preset)
+    views = preset.camera.views
+    half = preset.laser.fov_deg / 2
+    return {
+        "name": scene_name,
+        "camera": {"width": k.width, "height": k.height, "fx": round(k.fx, 6), "fy": round(k.fy, 6),
+                   "cx": k.cx, "cy": k.cy},
+        "rig": {"yaw_offsets_deg": [round(360.0 * v / views, 6) for v in range(views)]},
+        "laser": {"angle_min_deg": -half, "angle_max_deg": half, "beams": preset.laser.beams,
+                  "range_max": preset.laser.range_max},
+        "classes": list(preset.furnishing.classes),
+    }
+
+
+def _lighting(preset: SitePreset, scene, rng, changed: bool):
+    from pipeline.sitegen.change import ChangeSpec
+    from pipeline.sitegen.render import Lighting
+
+    r = preset.render
+    exposure = rng.uniform(*r.exposure_range)
+    tint = (1.0, 1.0, 1.0)
+    if changed:
+        spec = ChangeSpec()
+        exposure *= spec.exposure_gain
+        tint = spec.tint
+    return Lighting(ambient=float(rng.uniform(*r.ambient_range)),
+                    lights=tuple((lt.x, lt.y, lt.z, lt.intensity) for lt in scene.lights),
+                    exposure=float(exposure), tint=tint)
+
+
+def _save_jpeg(path: Path, rgb: np.ndarray) -> None:
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(rgb).save(path, format="JPEG", quality=JPEG_QUALITY)
+
+
+def build_scene(preset: SitePreset, seed: int, change: bool):
+    from pipeline.sitegen.change import change_scene
+    from pipeline.sitegen.furnish import furnish_scene
+    from pipeline.sitegen.layout import generate_plan
+
+    scene = furnish_scene(generate_plan(preset, seed), preset, seed)
+    if change:
+        scene = change_scene(scene, seed, poster_pictures=preset.furnishing.poster_pictures)
+    return scene
+
+
+def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, change: bool = False,
+              force: bool = False, progress: bool = True, allow_fallback: bool = True) -> Path:
+    """Write the reference site of `preset` to `outputs['out']`; returns that directory."""
+    from tqdm import tqdm
+
+    from pipeline.sitegen.assets import load_assets
+    from pipeline.sitegen.boxes import visible_boxes
+    from pipeline.sitegen.geometry import object_meshes, structure_meshes
+    from pipeline.sitegen.laser import rasterise_map
+    from pipeline.sitegen.render import Renderer
+    from pipeline.sitegen.trajectories import sample_stops
+
+    t_start = time.perf_counter()
+    scene = build_scene(preset, seed, change)
+    library = load_assets(tuple(preset.furnishing.classes), allow_fallback=allow_fallback)
+    occ_map = rasterise_map(scene, preset.map_resolution)
+    stops = sample_stops(scene, occ_map, spacing=preset.stops.spacing, clearance=preset.stops.clearance,
+                         jitter=preset.stops.jitter, seed=seed)
+    k = intrinsics_of(preset)
+    objects = {o.instance_id: o for o in scene.objects}
+    rng = np.random.default_rng(seed + 31)
+    meshes = structure_meshes(scene, library.textures) + object_meshes(scene, library, library.textures["poster"])
+    out = Path(outputs["out"])
+    stats = {"images": 0, "render_s": 0.0}
+    with atomic_dir(out, force=force) as tmp, Renderer(k) as renderer:
+        renderer.set_scene(meshes)
+        offsets = [2 * math.pi * v / preset.camera.views for v in range(preset.camera.views)]
+        rows, coco_images, coco_anns = [], [], []
+        for s, (x, y, heading) in enumerate(tqdm(stops, desc="rendering stops", unit="stop", disable=not progress)):
+            lighting = _lighting(preset, scene, rng, change)
+            room, area = scene.room_at(x, y)
+            for v, off in enumerate(offsets):
+                theta = math.atan2(math.sin(heading + off), math.cos(heading + off))
+                pose = (x, y, preset.camera.height_m, theta)
+                t0 = time.perf_counter()
+                rgb, ids, _ = renderer.render(pose, lighting)
+                stats["render_s"] += time.perf_counter() - t0
+                stats["images"] += 1
+                rel = f"images/stop{s:04d}_v{v}.jpg"
+                _save_jpeg(tmp / rel, rgb)
+                rows.append({"image": rel, "stop_id": f"stop{s:04d}", "view": v, "x": round(x, 4), "y": round(y, 4),
+                             "theta": round(theta, 6), "room": room, "area": area})
+                image_id = len(coco_images) + 1
+                coco_images.append({"id": image_id, "file_name": rel, "width": k.width, "height": k.height})
+                for b in visible_boxes(ids, objects, k, pose, preset.render.min_box_area_px,
+                                       preset.render.min_visible_share):
+                    coco_anns.append({"id": len(coco_anns) + 1, "image_id": image_id,
+                                      "category_id": preset.furnishing.classes.index(b.cls) + 1,
+                                      "bbox": [b.x1, b.y1, b.x2 - b.x1, b.y2 - b.y1],
+                                      "area": (b.x2 - b.x1) * (b.y2 - b.y1), "iscrowd": 0,
+                                      "instance_id": b.instance_id, "visible_share": round(b.visible_share, 3)})
+        run_report = _write_runs(tmp, preset, scene, occ_map, stops, renderer, rng, seed, change, stats, progress)
+        with (tmp / "captures.csv").open("w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=["image", "stop_id", "view", "x", "y", "theta", "room", "area"])
+            writer.writeheader()
+            writer.writerows(rows)
+        categories = [{"id": i + 1, "name": c} for i, c in enumerate(preset.furnishing.classes)]
+        write_text_atomic(tmp / "annotations.json",
+                          json.dumps({"images": coco_images, "annotations": coco_anns, "categories": categories}))
+        write_text_atomic(tmp / "site.yaml", yaml.safe_dump(site_yaml(preset, scene.name), sort_keys=False))
+        write_map(tmp / "map.yaml", occ_map)
+        write_contact_sheet(tmp / "contact_sheet.png", tmp, coco_images, coco_anns, preset.furnishing.classes, rng)
+        write_text_atomic(tmp / "ATTRIBUTION.md", _attribution_md(library))
+        report = {
+            "site": scene.name, "preset": preset.name, "seed": seed, "changed": change,
+            "stops": len(stops), "capture_images": len(rows),
+            "objects_per_class": scene.class_counts(), "boxes_per_class": _count_boxes(coco_anns, preset),
+            "runs": run_report, "assets_procedural": bool(library.procedural), "assets_missing": list(library.missing),
+            "images_rendered": stats["images"],
+            "render_images_per_s": round(stats["images"] / max(stats["render_s"], 1e-9), 2),
+            "wall_time_s": round(time.perf_counter() - t_start, 1),
+        }
+        write_text_atomic(tmp / "synth_report.json", json.dumps(report, indent=2) + "\n")
+        write_text_atomic(tmp / "synth_config.yaml", yaml.safe_dump(
+            {"stage": "synth", "seed": seed, "change": change, "preset": preset.model_dump(mode="json")},
+            sort_keys=False))
+    return out
+
+
+def _count_boxes(anns: list[dict], preset: SitePreset) -> dict[str, int]:
+    counts = {c: 0 for c in preset.furnishing.classes}
+    for a in anns:
+        counts[preset.furnishing.classes[a["category_id"] - 1]] += 1
+    return counts
+
+
+def _write_runs(tmp: Path, preset, scene, occ_map, stops, renderer, rng, seed, change, stats, progress) -> dict:
+    from tqdm import tqdm
+
+    from pipeline.sitegen.laser import LaserScanner, laser_world_grid
+    from pipeline.sitegen.trajectories import make_runs, write_capture_run
+
+    r, lz = preset.runs, preset.laser
+    runs = make_runs(scene, occ_map, stops, n_mapping=r.mapping_runs, n_query=r.query_runs,
+                     steps_per_run=r.steps_per_run, step=r.step_m, kidnaps_per_query_run=r.kidnaps_per_query_run,
+                     seed=seed, noise=r.odometry_noise)
+    report = {}
+    for run in tqdm(runs, desc="runs", unit="run", disable=not progress):
+        people, moved = _unmapped_obstacles(scene, occ_map, lz, rng)
+        world = laser_world_grid(scene, preset.map_resolution, extra_discs=people, extra_rects=moved)
+        scanner = LaserScanner(world, beams=lz.beams, fov_deg=lz.fov_deg, range_max=lz.range_max,
+                               noise_sigma=lz.noise_sigma, dropout=lz.dropout, seed=int(rng.integers(1 << 31)))
+        ranges = scanner.cast_many(run.gt)
+        lighting = _lighting(preset, scene, rng, change)
+        names = []
+        for i, (x, y, theta) in enumerate(run.gt):
+            t0 = time.perf_counter()
+            rgb, _, _ = renderer.render((float(x), float(y), preset.camera.height_m, float(theta)), lighting)
+            stats["render_s"] += time.perf_counter() - t0
+            stats["images"] += 1
+            rel = f"images/runs/{run.name}/{i:04d}.jpg"
+            _save_jpeg(tmp / rel, rgb)
+            names.append(rel)
+        write_capture_run(tmp / "runs" / run.name, run, ranges, names)
+        report[run.name] = {"kind": run.kind, "steps": len(run.gt), "kidnappings": int(np.sum(run.kidnapped))}
+    return report
+
+
+def _unmapped_obstacles(scene, occ_map, lz, rng):
+    """People standing in the free space and chairs pushed away from where the map has them."""
+    free_r, free_c = np.nonzero(occ_map.free)
+    people = []
+    for _ in range(lz.people):
+        i = int(rng.integers(len(free_r)))
+        x, y = occ_map.cell_to_world(free_r[i], free_c[i])
+        people.append((float(x), float(y), float(rng.uniform(0.2, 0.3))))
+    moved = []
+    for o in scene.objects:
+        if o.cls == "chair" and rng.random() < lz.moved_chairs_share:
+            a, d = rng.uniform(-math.pi, math.pi), rng.uniform(0.3, 1.0)
+            moved.append((o.x + d * math.cos(a), o.y + d * math.sin(a), o.yaw, o.size[0], o.size[1]))
+    return people, moved
+
+
+def write_contact_sheet(path: Path, root: Path, images: list[dict], anns: list[dict], classes, rng,
+                        n: int = 12, cols: int = 4, thumb_w: int = 320) -> Path:
+    """A grid of sample views with their boxes and class names drawn, to judge realism at a glance."""
+    from PIL import Image, ImageDraw
+
+    palette = [(230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48), (145, 30, 180),
+               (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 190)]
+    by_image: dict[int, list[dict]] = {}
+    for a in anns:
+        by_image.setdefault(a["image_id"], []).append(a)
+    # Prefer views with several boxes, so the sheet shows what the detector will learn from.
+    ranked = sorted(images, key=lambda im: -len(by_image.get(im["id"], [])))
+    pool = ranked[: max(n * 3, n)]
+    chosen = [pool[i] for i in sorted(rng.choice(len(pool), size=min(n, len(pool)), replace=False))]
+    tiles = []
+    for im in chosen:
+        with Image.open(root / im["file_name"]) as src:
+            tile = src.convert("RGB")
+        scale = thumb_w / tile.width
+        tile = tile.resize((thumb_w, round(tile.height * scale)))
+        draw = ImageDraw.Draw(tile)
+        for a in by_image.get(im["id"], []):
+            x, y, w, h = (v * scale for v in a["bbox"])
+            colour = palette[(a["category_id"] - 1) % len(palette)]
+            draw.rectangle([x, y, x + w, y + h], outline=colour, width=2)
+            draw.text((x + 2, y + 1), classes[a["category_id"] - 1], fill=colour)
+        tiles.append(tile)
+    rows = math.ceil(len(tiles) / cols)
+    sheet = Image.new("RGB", (cols * thumb_w, rows * tiles[0].height), (255, 255, 255))
+    for i, tile in enumerate(tiles):
+        sheet.paste(tile, ((i % cols) * thumb_w, (i // cols) * tile.height))
+    from pipeline.io.atomic import atomic_file
+
+    with atomic_file(path, "wb") as fh:
+        sheet.save(fh, format="PNG")
+    return path
+
+
+def _attribution_md(library) -> str:
+    lines = ["# Attribution of the 3D models and textures used in this site", ""]
+    if library.procedural:
+        lines += ["Some classes use procedural fallback shapes: " + ", ".join(library.missing), ""]
+    lines += ["| asset | creator | licence | source |", "| --- | --- | --- | --- |"]
+    for a in library.attribution:
+        lines.append(f"| {a.get('name', '')} | {a.get('creator', '')} | {a.get('license', '')} | {a.get('source', '')} |")
+    return "\n".join(lines) + "\n"
