@@ -49,6 +49,7 @@ __all__ = ["AssetLibrary", "MeshPart", "Model", "TextureInfo", "CLASSES", "FURNI
            "AssetFallbackWarning", "AssetsUnavailableError", "load_assets", "asset_root", "describe"]
 
 MAX_TRIANGLES = 20_000
+CONVERTER_VERSION = 2  # bump when conversion output or cached metadata change: drops every cache
 MODEL_TEXTURE_PX = 256
 ROLE_TEXTURE_PX = 512
 FURNITURE_DIR = Path("/usr/share/sweethome3d/furniture")
@@ -401,7 +402,7 @@ def load_assets(
     if unknown:
         raise ValueError(f"unknown classes {unknown}; known: {list(CLASSES)}")
     settings = {"max_triangles": MAX_TRIANGLES, "model_texture_px": MODEL_TEXTURE_PX,
-                "role_texture_px": ROLE_TEXTURE_PX, "converter": 1}
+                "role_texture_px": ROLE_TEXTURE_PX, "converter": CONVERTER_VERSION}
     cache = ConversionCache(Path(cache_dir) if cache_dir else asset_root(), settings)
     loader = _Loader(cache, _archives(furniture_dir or default_furniture_dir(), jar or default_jar_source()),
                      allow_fallback)

@@ -27,12 +27,11 @@ def _quad(p0, p1, p2, p3, normal, uv) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return pos, nrm, uvs
 
 
-def _box_faces(wall: Wall, a0: float, a1: float, z0: float, z1: float):
-    """The six faces of the wall piece from a0..a1 along the wall and z0..z1 high."""
+def _box_faces(wall: Wall, a0: float, a1: float, z0: float, z1: float, tile: float = TILE_M["wall"]):
+    """The six faces of the wall piece from a0..a1 along the wall and z0..z1 high, uvs in `tile` metres."""
     dx, dy = wall.direction
     nx, ny = -dy, dx
     t = wall.thickness / 2
-    tile = TILE_M["wall"]
     faces = []
     for sign in (1.0, -1.0):  # both long faces
         ox, oy = nx * t * sign, ny * t * sign
@@ -73,20 +72,32 @@ def _concat(parts) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))  # type: ignore[return-value]
 
 
-def structure_meshes(scene: Scene, textures: dict[str, list[np.ndarray]]) -> list[RenderMesh]:
+def _tile(library, role: str, index: int) -> float:
+    """The real repeat size of a texture (the catalog's), else a typical one for its role."""
+    infos = getattr(library, "texture_info", {}).get(role) or []
+    if infos:
+        size = infos[index % len(infos)].tile_size_m
+        if size:
+            return float(max(size))
+    return TILE_M[role]
+
+
+def structure_meshes(scene: Scene, library) -> list[RenderMesh]:
     """Walls (one mesh per wall texture), floors (per floor texture) and the ceiling."""
+    textures = library.textures
     out = []
     by_material: dict[int, list] = defaultdict(list)
-    for wall in scene.walls:
-        for a0, a1, z0, z1 in wall_pieces(wall):
-            by_material[wall.material].extend(_box_faces(wall, a0, a1, z0, z1))
     wall_tex = textures["wall"]
+    for wall in scene.walls:
+        tile = _tile(library, "wall", wall.material % len(wall_tex))
+        for a0, a1, z0, z1 in wall_pieces(wall):
+            by_material[wall.material].extend(_box_faces(wall, a0, a1, z0, z1, tile))
     for material, faces in sorted(by_material.items()):
         pos, nrm, uv = _concat(faces)
         out.append(RenderMesh(pos, nrm, uv, wall_tex[material % len(wall_tex)], (1.0, 1.0, 1.0)))
     floors: dict[int, list] = defaultdict(list)
-    tile = TILE_M["floor"]
     for room in scene.rooms:
+        tile = _tile(library, "floor", room.floor_material % len(textures["floor"]))
         r = room.rect
         uv = [(r.x0 / tile, r.y0 / tile), (r.x1 / tile, r.y0 / tile), (r.x1 / tile, r.y1 / tile), (r.x0 / tile, r.y1 / tile)]
         floors[room.floor_material].append(
@@ -95,7 +106,7 @@ def structure_meshes(scene: Scene, textures: dict[str, list[np.ndarray]]) -> lis
     for material, faces in sorted(floors.items()):
         pos, nrm, uv = _concat(faces)
         out.append(RenderMesh(pos, nrm, uv, floor_tex[material % len(floor_tex)], (1.0, 1.0, 1.0)))
-    b, h, tile = scene.bounds, scene.wall_height, TILE_M["ceiling"]
+    b, h, tile = scene.bounds, scene.wall_height, _tile(library, "ceiling", 0)
     uv = [(b.x0 / tile, b.y0 / tile), (b.x1 / tile, b.y0 / tile), (b.x1 / tile, b.y1 / tile), (b.x0 / tile, b.y1 / tile)]
     pos, nrm, uvs = _quad((b.x0, b.y0, h), (b.x1, b.y0, h), (b.x1, b.y1, h), (b.x0, b.y1, h), (0, 0, -1), uv)
     out.append(RenderMesh(pos, nrm, uvs, textures["ceiling"][0], (1.0, 1.0, 1.0)))

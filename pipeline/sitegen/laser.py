@@ -119,7 +119,8 @@ def _object_rects(scene: Scene, skip_ids: set[int], skip_closed: bool) -> list[R
             continue
         if skip_closed and any(r.contains(o.x, o.y) for r in scene.closed):
             continue
-        out.append((o.x, o.y, o.yaw, o.size[0], o.size[1]))
+        # The object's yaw is the heading of its front (model -y), so its width axis points at yaw + pi/2.
+        out.append((o.x, o.y, o.yaw + math.pi / 2, o.size[0], o.size[1]))
     return out
 
 
@@ -189,7 +190,7 @@ def displace_furniture(
             if keep_clear is not None and len(keep_clear):
                 if np.min(np.hypot(keep_clear[:, 0] - x, keep_clear[:, 1] - y)) < keep_radius + reach:
                     continue
-            rects.append((x, y, o.yaw + rng.normal(0.0, 0.3), o.size[0], o.size[1]))
+            rects.append((x, y, o.yaw + math.pi / 2 + rng.normal(0.0, 0.3), o.size[0], o.size[1]))
             removed.append(o.instance_id)
             break
     return rects, removed

@@ -103,7 +103,7 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
     k = intrinsics_of(preset)
     objects = {o.instance_id: o for o in scene.objects}
     rng = np.random.default_rng(seed + 31)
-    meshes = structure_meshes(scene, library.textures) + object_meshes(scene, library, library.textures["poster"])
+    meshes = structure_meshes(scene, library) + object_meshes(scene, library, library.textures["poster"])
     out = Path(outputs["out"])
     stats = {"images": 0, "render_s": 0.0}
     with atomic_dir(out, force=force) as tmp, Renderer(k) as renderer:
@@ -171,20 +171,24 @@ def _count_boxes(anns: list[dict], preset: SitePreset) -> dict[str, int]:
 def _write_runs(tmp: Path, preset, scene, occ_map, stops, renderer, rng, seed, change, stats, progress) -> dict:
     from tqdm import tqdm
 
-    from pipeline.sitegen.laser import LaserScanner, laser_world_grid
-    from pipeline.sitegen.trajectories import make_runs, write_capture_run
+    from pipeline.sitegen.laser import LaserScanner, displace_furniture, laser_poses, laser_world_grid, walking_people
+    from pipeline.sitegen.trajectories import make_runs, reachable_mask, write_capture_run
 
     r, lz = preset.runs, preset.laser
     runs = make_runs(scene, occ_map, stops, n_mapping=r.mapping_runs, n_query=r.query_runs,
                      steps_per_run=r.steps_per_run, step=r.step_m, kidnaps_per_query_run=r.kidnaps_per_query_run,
                      seed=seed, noise=r.odometry_noise)
     report = {}
-    for run in tqdm(runs, desc="runs", unit="run", disable=not progress):
-        people, moved = _unmapped_obstacles(scene, occ_map, lz, rng)
-        world = laser_world_grid(scene, preset.map_resolution, extra_discs=people, extra_rects=moved)
+    for k, run in enumerate(tqdm(runs, desc="runs", unit="run", disable=not progress)):
+        run_seed = seed * 1000 + k
+        # Unmapped obstacles: chairs pushed away from where the map has them, people walking past.
+        moved, removed = displace_furniture(scene, occ_map, lz.moved_chairs_share, run_seed, keep_clear=run.gt[:, :2])
+        world = laser_world_grid(scene, preset.map_resolution, extra_rects=moved, removed_ids=removed)
+        person_room = reachable_mask(scene, occ_map, clearance=0.35)
+        people = walking_people(person_room, occ_map, lz.people, len(run.gt), run_seed, robot_xy=run.gt[:, :2])
         scanner = LaserScanner(world, beams=lz.beams, fov_deg=lz.fov_deg, range_max=lz.range_max,
-                               noise_sigma=lz.noise_sigma, dropout=lz.dropout, seed=int(rng.integers(1 << 31)))
-        ranges = scanner.cast_many(run.gt)
+                               noise_sigma=lz.noise_sigma, dropout=lz.dropout, seed=run_seed)
+        ranges = scanner.cast_many(laser_poses(run.gt), discs=people)
         lighting = _lighting(preset, scene, rng, change)
         names = []
         for i, (x, y, theta) in enumerate(run.gt):
@@ -196,24 +200,9 @@ def _write_runs(tmp: Path, preset, scene, occ_map, stops, renderer, rng, seed, c
             _save_jpeg(tmp / rel, rgb)
             names.append(rel)
         write_capture_run(tmp / "runs" / run.name, run, ranges, names)
-        report[run.name] = {"kind": run.kind, "steps": len(run.gt), "kidnappings": int(np.sum(run.kidnapped))}
+        report[run.name] = {"kind": run.kind, "steps": len(run.gt), "kidnappings": int(np.sum(run.kidnapped)),
+                            "moved_chairs": len(moved), "people": lz.people}
     return report
-
-
-def _unmapped_obstacles(scene, occ_map, lz, rng):
-    """People standing in the free space and chairs pushed away from where the map has them."""
-    free_r, free_c = np.nonzero(occ_map.free)
-    people = []
-    for _ in range(lz.people):
-        i = int(rng.integers(len(free_r)))
-        x, y = occ_map.cell_to_world(free_r[i], free_c[i])
-        people.append((float(x), float(y), float(rng.uniform(0.2, 0.3))))
-    moved = []
-    for o in scene.objects:
-        if o.cls == "chair" and rng.random() < lz.moved_chairs_share:
-            a, d = rng.uniform(-math.pi, math.pi), rng.uniform(0.3, 1.0)
-            moved.append((o.x + d * math.cos(a), o.y + d * math.sin(a), o.yaw, o.size[0], o.size[1]))
-    return people, moved
 
 
 def write_contact_sheet(path: Path, root: Path, images: list[dict], anns: list[dict], classes, rng,

@@ -54,12 +54,14 @@ def test_map_frame_and_what_is_occupied_free_and_unknown():
     assert at(10.0, 7.0) == OCCUPIED  # the core's own walls are
     assert at(11.0, 1.5) == OCCUPIED and at(8.0, 7.5) == OCCUPIED  # plant, cabinet
     assert at(5.0, 0.13) == FREE  # the poster does not block the laser
-    # The desk is rotated by 0.3 rad: points inside its footprint are occupied, a corner of its unrotated
-    # bounding box that the rotation leaves out is free.
-    c, s = math.cos(DESK.yaw), math.sin(DESK.yaw)
-    for u, v in ((0.0, 0.0), (0.6, 0.3), (-0.6, -0.3), (0.6, -0.3)):
-        assert at(DESK.x + c * u - s * v, DESK.y + s * u + c * v) == OCCUPIED
-    assert at(DESK.x - 0.68, DESK.y + 0.33) == FREE
+    # The desk faces yaw = 0.3 rad, so its 1.4 m width runs along yaw + pi/2 and its 0.7 m depth along yaw:
+    # points of its footprint are occupied, points just beyond its rotated edges are free.
+    wx, wy = -math.sin(DESK.yaw), math.cos(DESK.yaw)  # width axis
+    dx, dy = math.cos(DESK.yaw), math.sin(DESK.yaw)  # depth axis (towards its front)
+    for u, v in ((0.0, 0.0), (0.6, 0.3), (-0.6, -0.3), (0.6, -0.3), (-0.6, 0.3)):
+        assert at(DESK.x + u * wx + v * dx, DESK.y + u * wy + v * dy) == OCCUPIED
+    for u, v in ((0.0, 0.5), (0.0, -0.5), (0.85, 0.0), (-0.85, 0.0)):
+        assert at(DESK.x + u * wx + v * dx, DESK.y + u * wy + v * dy) == FREE
     assert at(CHAIR.x + 0.2, CHAIR.y + 0.2) == OCCUPIED and at(CHAIR.x + 0.3, CHAIR.y) == FREE
 
 
