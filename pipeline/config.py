@@ -147,6 +147,20 @@ def _set_dotted(tree: dict, dotted: str, value: Any) -> None:
     node[parts[-1]] = value
 
 
+def parse_overrides(items: list[str] | None) -> dict:
+    """`KEY=VALUE` strings as {dotted key: YAML-parsed value}; a malformed item is a ConfigError."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ConfigError(f"override '{item}': expected KEY=VALUE, e.g. camera.width=320")
+        key, value = item.split("=", 1)
+        try:
+            out[key.strip()] = yaml.safe_load(value)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"override '{item}': the value is not valid YAML: {exc}") from None
+    return out
+
+
 def load_config(preset: str | Path = "demo", overrides: list[str] | None = None) -> SitelocConfig:
     """Load a preset and apply `key.sub=value` overrides (values parsed as YAML)."""
     path = resolve_preset(preset)

@@ -240,14 +240,14 @@ def run_ingest(
     cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path], force: bool = False, progress: bool = True
 ) -> Path:
     """Validate `inputs['site']` and write `outputs['out']`: images/boxes/runs tables, map, site, report."""
-    from tqdm import tqdm
+    from pipeline.progress import progress_bar
 
     v = validate_site_dir(inputs["site"], cfg.ingest, progress=progress)
     split = split_stops([r.stop_id for r in v.rows], cfg.ingest.split.test_fraction, cfg.ingest.split.seed)
     out = Path(outputs["out"])
     with atomic_dir(out, force=force) as tmp:
         to_copy = sorted({r.image for r in v.rows} | {i for run in v.runs for i in run.image if i})
-        for rel in tqdm(to_copy, desc="linking images", unit="img", disable=not progress, leave=False):
+        for rel in progress_bar(to_copy, desc="linking images", unit="img", enabled=progress, leave=False):
             _link_or_copy(v.root / rel, tmp / rel, cfg.ingest.link_images)
         tables.write_table(tmp / "images.parquet", _images_table(v, split), "images")
         tables.write_table(tmp / "boxes.parquet", _boxes_table(v), "boxes")

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ForceOpt, VerboseOpt, cli_errors
+from stages.common import ForceOpt, SetOpt, VerboseOpt, cli_errors
 
 HELP = """Generate and render a reference office floor as a site capture directory.
 
@@ -24,6 +24,8 @@ dropouts, people and moved chairs, an image per step, kidnappings flagged), cont
 synth_report.json and ATTRIBUTION.md. `siteloc ingest` takes the directory as it is.
 
 --change writes the same building after a change (moved furniture, new posters, other lighting).
+--set overrides any preset key, e.g. --set camera.width=320 --set camera.height=240 --set runs.query_runs=5.
+Every output but synth_timing.json is byte-identical for the same preset, overrides and seed.
 
 Example: siteloc synth --preset office --out data/office/site
 """
@@ -31,29 +33,34 @@ Example: siteloc synth --preset office --out data/office/site
 
 def synth(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output capture directory.", show_default=False)],
-    preset: Annotated[str, typer.Option("--preset", "-p", help="Site preset: tiny, office, paper, or a YAML path.")] = "office",
+    preset: Annotated[
+        str, typer.Option("--preset", "-p", help="Site preset: tiny, office, paper, or a YAML path.")
+    ] = "office",
     seed: Annotated[int, typer.Option("--seed", help="Seed of the layout, furnishing, stops, runs and noise.")] = 0,
     change: Annotated[bool, typer.Option("--change", help="Write the building after an environment change.")] = False,
     strict_assets: Annotated[
         bool, typer.Option("--strict-assets", help="Fail instead of falling back to procedural shapes.")
     ] = False,
+    overrides: SetOpt = None,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     with cli_errors(verbose):
         import json
 
+        from pipeline.config import parse_overrides
         from pipeline.sitegen.presets import load_site_preset
         from pipeline.sitegen.synth import run_synth
 
-        site = load_site_preset(preset)
+        site = load_site_preset(preset, parse_overrides(overrides))
         path = run_synth(site, outputs={"out": out}, seed=seed, change=change, force=force,
                          allow_fallback=not strict_assets)
         rep = json.loads((path / "synth_report.json").read_text())
+        timing = json.loads((path / "synth_timing.json").read_text())
         typer.echo(
             f"synthesised '{rep['site']}': {rep['stops']} stops, {rep['capture_images']} capture images, "
-            f"{len(rep['runs'])} runs, {rep['images_rendered']} images at {rep['render_images_per_s']} images/s, "
-            f"{rep['wall_time_s']} s -> {path}"
+            f"{len(rep['runs'])} runs, {rep['images_rendered']} images at {timing['render_images_per_s']} images/s, "
+            f"{timing['wall_time_s']} s wall -> {path}"
         )
         typer.echo("boxes per class: " + ", ".join(f"{c} {n}" for c, n in rep["boxes_per_class"].items()))
         if rep["assets_procedural"]:

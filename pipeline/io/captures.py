@@ -227,10 +227,11 @@ def check_images(
 ) -> dict[str, tuple[int, int, str]]:
     """Open every image; returns image -> (width, height, sha256) for the readable ones."""
     from PIL import Image, UnidentifiedImageError
-    from tqdm import tqdm
+
+    from pipeline.progress import progress_bar
 
     out: dict[str, tuple[int, int, str]] = {}
-    for r in tqdm(rows, desc="checking images", unit="img", disable=not progress, leave=False):
+    for r in progress_bar(rows, desc="checking images", unit="img", enabled=progress, leave=False):
         full = site_relative(root, r.image)
         if full is None or not full.is_file() or r.image in out:
             continue

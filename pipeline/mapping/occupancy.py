@@ -176,7 +176,7 @@ def build_occupancy_map(
 
     The grid covers the poses and every used endpoint plus `cfg.margin_m`; origin = lower-left corner.
     """
-    from tqdm import tqdm
+    from pipeline.progress import progress_bar
 
     cfg = cfg or MappingConfig()
     poses = np.asarray(poses, dtype=np.float64)
@@ -190,7 +190,7 @@ def build_occupancy_map(
     # Cells each scan's beams cross (|d col| + |d row| + 1 per beam): the batch size in memory.
     crossings = (np.abs(ex - poses[:, 0:1]) + np.abs(ey - poses[:, 1:2])) / cfg.resolution + 2
     per_scan = np.where(valid, crossings, 0).sum(axis=1).astype(np.int64)
-    with tqdm(total=len(poses), unit="scan", desc="mapping", disable=not progress, leave=False) as bar:
+    with progress_bar(total=len(poses), unit="scan", desc="mapping", enabled=progress, leave=False) as bar:
         for a, b in _batches(per_scan, cfg.chunk_scans):
             tracer.trace(poses[a:b], valid[a:b], ex[a:b], ey[a:b])
             bar.update(b - a)

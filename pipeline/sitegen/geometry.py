@@ -45,7 +45,8 @@ def _box_faces(wall: Wall, a0: float, a1: float, z0: float, z1: float, tile: flo
         uv = [(0, z0 / tile), (2 * t / tile, z0 / tile), (2 * t / tile, z1 / tile), (0, z1 / tile)]
         faces.append(_quad((*c0, z0), (*c1, z0), (*c1, z1), (*c0, z1), (dx * sign, dy * sign, 0.0), uv))
     for z, sign in ((z1, 1.0), (z0, -1.0)):  # top and bottom (lintels, sills)
-        c = [(wall.x0 + dx * a + nx * t * s, wall.y0 + dy * a + ny * t * s) for a, s in ((a0, 1), (a1, 1), (a1, -1), (a0, -1))]
+        ends = ((a0, 1), (a1, 1), (a1, -1), (a0, -1))
+        c = [(wall.x0 + dx * a + nx * t * s, wall.y0 + dy * a + ny * t * s) for a, s in ends]
         uv = [(a0 / tile, 0), (a1 / tile, 0), (a1 / tile, 2 * t / tile), (a0 / tile, 2 * t / tile)]
         faces.append(_quad(*[(x, y, z) for x, y in c], (0.0, 0.0, sign), uv))
     return faces
@@ -99,7 +100,7 @@ def structure_meshes(scene: Scene, library) -> list[RenderMesh]:
     for room in scene.rooms:
         tile = _tile(library, "floor", room.floor_material % len(textures["floor"]))
         r = room.rect
-        uv = [(r.x0 / tile, r.y0 / tile), (r.x1 / tile, r.y0 / tile), (r.x1 / tile, r.y1 / tile), (r.x0 / tile, r.y1 / tile)]
+        uv = [(x / tile, y / tile) for x, y in ((r.x0, r.y0), (r.x1, r.y0), (r.x1, r.y1), (r.x0, r.y1))]
         floors[room.floor_material].append(
             _quad((r.x0, r.y0, 0.0), (r.x1, r.y0, 0.0), (r.x1, r.y1, 0.0), (r.x0, r.y1, 0.0), (0, 0, 1), uv))
     floor_tex = textures["floor"]
@@ -107,7 +108,7 @@ def structure_meshes(scene: Scene, library) -> list[RenderMesh]:
         pos, nrm, uv = _concat(faces)
         out.append(RenderMesh(pos, nrm, uv, floor_tex[material % len(floor_tex)], (1.0, 1.0, 1.0)))
     b, h, tile = scene.bounds, scene.wall_height, _tile(library, "ceiling", 0)
-    uv = [(b.x0 / tile, b.y0 / tile), (b.x1 / tile, b.y0 / tile), (b.x1 / tile, b.y1 / tile), (b.x0 / tile, b.y1 / tile)]
+    uv = [(x / tile, y / tile) for x, y in ((b.x0, b.y0), (b.x1, b.y0), (b.x1, b.y1), (b.x0, b.y1))]
     pos, nrm, uvs = _quad((b.x0, b.y0, h), (b.x1, b.y0, h), (b.x1, b.y1, h), (b.x0, b.y1, h), (0, 0, -1), uv)
     out.append(RenderMesh(pos, nrm, uvs, textures["ceiling"][0], (1.0, 1.0, 1.0)))
     return out

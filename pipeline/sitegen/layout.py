@@ -64,7 +64,8 @@ class _PlanBuilder:
         self.doors: list[tuple[Room, float, float]] = []  # (room, door centre x, y) of each doorway
 
     def add_rect_sides(self, r: Rect) -> None:
-        self.sides += [("h", r.y0, r.x0, r.x1), ("h", r.y1, r.x0, r.x1), ("v", r.x0, r.y0, r.y1), ("v", r.x1, r.y0, r.y1)]
+        self.sides += [("h", r.y0, r.x0, r.x1), ("h", r.y1, r.x0, r.x1),
+                       ("v", r.x0, r.y0, r.y1), ("v", r.x1, r.y0, r.y1)]
 
     def add_room(self, rect: Rect, facing: str, index_in_row: int, row_len: int, kind: str) -> None:
         fp = self.p.floor
@@ -231,4 +232,5 @@ def _add_windows(b: _PlanBuilder, preset: SitePreset, W: float, H: float) -> Non
 
 def _light_grid(rect: Rect, spacing: float) -> list[tuple[float, float]]:
     nx, ny = max(1, math.floor(rect.w / spacing)), max(1, math.floor(rect.h / spacing))
-    return [(rect.x0 + rect.w * (i + 0.5) / nx, rect.y0 + rect.h * (j + 0.5) / ny) for i in range(nx) for j in range(ny)]
+    return [(rect.x0 + rect.w * (i + 0.5) / nx, rect.y0 + rect.h * (j + 0.5) / ny)
+            for i in range(nx) for j in range(ny)]

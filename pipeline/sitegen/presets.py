@@ -37,9 +37,11 @@ class FloorPlan(Strict):
     def _fits(self) -> FloorPlan:
         w, h = self.size
         for n, extent in ((self.corridors_x, w), (self.corridors_y, h)):
-            if 2 * self.band_depth + n * self.corridor_width + (n - 1) * self.min_room_depth > extent:
-                raise ValueError(f"{n} corridors of {self.corridor_width} m and {self.band_depth} m bands "
-                                 f"do not fit in {extent} m")
+            need = 2 * self.band_depth + n * self.corridor_width + (n - 1) * self.min_room_depth
+            if need > extent:
+                raise ValueError(f"{n} corridors of {self.corridor_width} m, {self.band_depth} m bands and "
+                                 f"{self.min_room_depth} m inner rooms need {need:.2f} m but the floor has {extent} m: "
+                                 "enlarge floor.size or reduce band_depth / corridor_width")
         return self
 
 
@@ -131,6 +133,8 @@ def load_site_preset(name_or_path: str | Path, overrides: dict | None = None) ->
         parts = key.split(".")
         for part in parts[:-1]:
             node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"{path}: override '{key}': '{part}' is a value, not a section")
         node[parts[-1]] = value
     try:
         return SitePreset.model_validate(raw)

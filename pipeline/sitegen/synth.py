@@ -18,11 +18,28 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from pipeline import __version__
 from pipeline.io.atomic import atomic_dir, write_text_atomic
 from pipeline.io.map_yaml import write_map
 from pipeline.sitegen.presets import SitePreset
 
 JPEG_QUALITY = 92
+TIMING_FILE = "synth_timing.json"  # the one output that is not reproducible byte for byte
+
+
+def machine_summary() -> str:
+    import os
+    import platform
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {len(os.sched_getaffinity(0))} usable cores, {platform.system()}"
 
 
 def intrinsics_of(preset: SitePreset):
@@ -85,8 +102,7 @@ def build_scene(preset: SitePreset, seed: int, change: bool):
 def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, change: bool = False,
               force: bool = False, progress: bool = True, allow_fallback: bool = True) -> Path:
     """Write the reference site of `preset` to `outputs['out']`; returns that directory."""
-    from tqdm import tqdm
-
+    from pipeline.progress import progress_bar
     from pipeline.sitegen.assets import load_assets
     from pipeline.sitegen.boxes import visible_boxes
     from pipeline.sitegen.geometry import object_meshes, structure_meshes
@@ -110,7 +126,7 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
         renderer.set_scene(meshes)
         offsets = [2 * math.pi * v / preset.camera.views for v in range(preset.camera.views)]
         rows, coco_images, coco_anns = [], [], []
-        for s, (x, y, heading) in enumerate(tqdm(stops, desc="rendering stops", unit="stop", disable=not progress)):
+        for s, (x, y, heading) in enumerate(progress_bar(stops, desc="rendering stops", unit="stop", enabled=progress)):
             lighting = _lighting(preset, scene, rng, change)
             room, area = scene.room_at(x, y)
             for v, off in enumerate(offsets):
@@ -151,13 +167,16 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
             "objects_per_class": scene.class_counts(), "boxes_per_class": _count_boxes(coco_anns, preset),
             "runs": run_report, "assets_procedural": bool(library.procedural), "assets_missing": list(library.missing),
             "images_rendered": stats["images"],
-            "render_images_per_s": round(stats["images"] / max(stats["render_s"], 1e-9), 2),
-            "wall_time_s": round(time.perf_counter() - t_start, 1),
         }
         write_text_atomic(tmp / "synth_report.json", json.dumps(report, indent=2) + "\n")
-        write_text_atomic(tmp / "synth_config.yaml", yaml.safe_dump(
-            {"stage": "synth", "seed": seed, "change": change, "preset": preset.model_dump(mode="json")},
-            sort_keys=False))
+        # Timings differ from run to run, so they live apart from the reproducible outputs.
+        timing = {"render_images_per_s": round(stats["images"] / max(stats["render_s"], 1e-9), 2),
+                  "render_s": round(stats["render_s"], 2), "wall_time_s": round(time.perf_counter() - t_start, 1),
+                  "machine": machine_summary()}
+        write_text_atomic(tmp / "synth_timing.json", json.dumps(timing, indent=2) + "\n")
+        write_text_atomic(tmp / "config.yaml", yaml.safe_dump(
+            {"stage": "synth", "siteloc_version": __version__, "seed": seed, "change": change,
+             "preset": preset.model_dump(mode="json")}, sort_keys=False))
     return out
 
 
@@ -169,8 +188,7 @@ def _count_boxes(anns: list[dict], preset: SitePreset) -> dict[str, int]:
 
 
 def _write_runs(tmp: Path, preset, scene, occ_map, stops, renderer, rng, seed, change, stats, progress) -> dict:
-    from tqdm import tqdm
-
+    from pipeline.progress import progress_bar
     from pipeline.sitegen.laser import LaserScanner, displace_furniture, laser_poses, laser_world_grid, walking_people
     from pipeline.sitegen.trajectories import make_runs, reachable_mask, write_capture_run
 
@@ -179,7 +197,7 @@ def _write_runs(tmp: Path, preset, scene, occ_map, stops, renderer, rng, seed, c
                      steps_per_run=r.steps_per_run, step=r.step_m, kidnaps_per_query_run=r.kidnaps_per_query_run,
                      seed=seed, noise=r.odometry_noise)
     report = {}
-    for k, run in enumerate(tqdm(runs, desc="runs", unit="run", disable=not progress)):
+    for k, run in enumerate(progress_bar(runs, desc="runs", unit="run", enabled=progress)):
         run_seed = seed * 1000 + k
         # Unmapped obstacles: chairs pushed away from where the map has them, people walking past.
         moved, removed = displace_furniture(scene, occ_map, lz.moved_chairs_share, run_seed, keep_clear=run.gt[:, :2])
@@ -249,5 +267,6 @@ def _attribution_md(library) -> str:
         lines += ["Some classes use procedural fallback shapes: " + ", ".join(library.missing), ""]
     lines += ["| asset | creator | licence | source |", "| --- | --- | --- | --- |"]
     for a in library.attribution:
-        lines.append(f"| {a.get('name', '')} | {a.get('creator', '')} | {a.get('license', '')} | {a.get('source', '')} |")
+        cells = (a.get(k, "") for k in ("name", "creator", "license", "source"))
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

@@ -117,7 +117,7 @@ def test_bad_preset_names_key(tmp_path):
     with pytest.raises(ConfigError, match="floor.sise"):
         load_site_preset(path)
     path.write_text("floor:\n  size: [10, 10]\n  corridors_x: 4\n")
-    with pytest.raises(ConfigError, match="do not fit"):
+    with pytest.raises(ConfigError, match=r"need .* m but the floor has 10.0 m: enlarge floor.size"):
         load_site_preset(path)
     with pytest.raises(ConfigError, match="unknown site preset 'castle'"):
         load_site_preset("castle")

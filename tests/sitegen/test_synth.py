@@ -1,0 +1,219 @@
+"""`siteloc synth` end to end on a micro site: determinism, the capture contract, boxes, scans, runs, fallback."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from pipeline.config import load_config
+from pipeline.ingest import run_ingest
+from pipeline.io import tables
+from pipeline.io.map_yaml import FREE, OCCUPIED, read_map
+from pipeline.mapping.occupancy import endpoint_occupied_share
+from pipeline.runtime.motion import wrap_angle
+from pipeline.sitegen.asset_types import AssetsUnavailableError
+from pipeline.sitegen.presets import load_site_preset
+from pipeline.sitegen.render import egl_available
+from pipeline.sitegen.synth import TIMING_FILE, run_synth
+
+pytestmark = pytest.mark.skipif(not egl_available(), reason="no headless EGL context on this machine")
+
+# The tiny preset shrunk so that one synth takes a few seconds: a smaller floor, sparser stops, small views.
+MICRO = {
+    "floor.size": [14.0, 13.0], "floor.band_depth": 3.2, "stops.spacing": 2.5, "camera.width": 96,
+    "camera.height": 72, "runs.steps_per_run": 14, "runs.kidnaps_per_query_run": 1,
+}
+
+
+def micro(**extra):
+    return load_site_preset("tiny", {**MICRO, **extra})
+
+
+def synth(out: Path, seed: int = 3, **kwargs) -> Path:
+    return run_synth(micro(), outputs={"out": out}, seed=seed, progress=False, **kwargs)
+
+
+def digests(root: Path) -> dict[str, str]:
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file() and p.name != TIMING_FILE}
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory) -> Path:
+    return synth(tmp_path_factory.mktemp("synth") / "site")
+
+
+@pytest.fixture(scope="module")
+def ingested(site, tmp_path_factory) -> Path:
+    cfg = load_config("ci")
+    return run_ingest(cfg, inputs={"site": site}, outputs={"out": tmp_path_factory.mktemp("ing") / "out"},
+                      progress=False)
+
+
+def captures(site: Path) -> list[dict]:
+    with (site / "captures.csv").open(newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_same_seed_same_bytes_and_another_seed_another_site(site, tmp_path):
+    again = digests(synth(tmp_path / "again"))
+    assert again == digests(site)
+    assert {"site.yaml", "map.yaml", "map.pgm", "captures.csv", "annotations.json", "contact_sheet.png",
+            "config.yaml", "synth_report.json", "runs/query_00/scans.npy"} <= set(again)
+    timing = json.loads((site / TIMING_FILE).read_text())
+    assert timing["render_images_per_s"] > 0 and timing["wall_time_s"] > 0 and "cores" in timing["machine"]
+
+
+def test_ingest_accepts_the_output_unchanged(site, ingested):
+    images = tables.read_table(ingested / "images.parquet", "images").to_pylist()
+    rows = captures(site)
+    assert len(images) == len(rows) and {r["split"] for r in images} == {"train", "test"}
+    boxes = tables.read_table(ingested / "boxes.parquet", "boxes")
+    coco = json.loads((site / "annotations.json").read_text())
+    assert boxes.num_rows == len(coco["annotations"]) > 0
+    report = json.loads((site / "synth_report.json").read_text())
+    assert sum(report["boxes_per_class"].values()) == boxes.num_rows
+    assert sorted(p.stem for p in (ingested / "runs").glob("*.parquet")) == ["mapping_00", "query_00"]
+
+
+def test_stops_and_views_as_specified(site):
+    preset = micro()
+    occ = read_map(site / "map.yaml")
+    rows = captures(site)
+    by_stop: dict[str, list[dict]] = {}
+    for r in rows:
+        by_stop.setdefault(r["stop_id"], []).append(r)
+    assert all(len(v) == 6 for v in by_stop.values())
+    for views in by_stop.values():
+        views.sort(key=lambda r: int(r["view"]))
+        assert len({(r["x"], r["y"]) for r in views}) == 1
+        theta = np.array([float(r["theta"]) for r in views])
+        np.testing.assert_allclose(wrap_angle(np.diff(theta)), math.radians(60), atol=1e-5)
+    xy = np.array([[float(v[0]["x"]), float(v[0]["y"])] for v in by_stop.values()])
+    assert np.all(occ.value_at(xy[:, 0], xy[:, 1]) == FREE)
+    gaps = np.sort(np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1)), axis=1)[:, 1]
+    # A stop every ~spacing metres: each stop's nearest neighbour is about that far (jitter and walls allowed).
+    assert 0.3 * preset.stops.spacing < np.median(gaps) < 1.5 * preset.stops.spacing
+    from PIL import Image
+
+    with Image.open(site / rows[0]["image"]) as im:
+        assert im.size == (96, 72)
+
+
+def test_boxes_agree_with_a_fresh_instance_buffer(site):
+    """Re-render some views and derive each box independently from the id buffer (min/max of its pixels)."""
+    from pipeline.sitegen.assets import load_assets
+    from pipeline.sitegen.geometry import object_meshes, structure_meshes
+    from pipeline.sitegen.render import Lighting, Renderer
+    from pipeline.sitegen.synth import build_scene, intrinsics_of
+
+    preset = micro()
+    scene = build_scene(preset, 3, False)
+    cls_of = {o.instance_id: o.cls for o in scene.objects}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        library = load_assets(tuple(preset.furnishing.classes))
+    coco = json.loads((site / "annotations.json").read_text())
+    names = {c["id"]: c["name"] for c in coco["categories"]}
+    anns: dict[int, list[dict]] = {}
+    for a in coco["annotations"]:
+        anns.setdefault(a["image_id"], []).append(a)
+    pose_of = {r["image"]: (float(r["x"]), float(r["y"]), preset.camera.height_m, float(r["theta"]))
+               for r in captures(site)}
+    busiest = sorted(coco["images"], key=lambda im: -len(anns.get(im["id"], [])))[:8]
+    meshes = structure_meshes(scene, library) + object_meshes(scene, library, library.textures["poster"])
+    checked = 0
+    with Renderer(intrinsics_of(preset)) as renderer:
+        renderer.set_scene(meshes)
+        for im in busiest:
+            _, ids, _ = renderer.render(pose_of[im["file_name"]], Lighting())
+            for a in anns[im["id"]]:
+                assert names[a["category_id"]] == cls_of[a["instance_id"]]
+                ys, xs = np.nonzero(ids == a["instance_id"])
+                x, y, w, h = a["bbox"]
+                assert (x, y, x + w, y + h) == (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)
+                assert w * h >= preset.render.min_box_area_px and 0.25 <= a["visible_share"] <= 1.0
+                checked += 1
+    assert checked >= 10
+
+
+def test_scans_hit_the_map_and_runs_flag_their_kidnappings(site, ingested):
+    preset = micro()
+    occ = read_map(site / "map.yaml")
+    for name in ("mapping_00", "query_00"):
+        run = tables.read_table(ingested / "runs" / f"{name}.parquet", "runs").to_pydict()
+        gt = np.column_stack([run["gt_x"], run["gt_y"], run["gt_theta"]])
+        ranges = np.array(run["ranges"], dtype=np.float64)
+        assert ranges.shape == (preset.runs.steps_per_run, preset.laser.beams)
+        share = endpoint_occupied_share(occ, gt, ranges, run["angle_min"][0], run["angle_increment"][0],
+                                        run["range_max"][0], tolerance_cells=1)
+        # Returns off the map come from the person and the moved chairs only (noise is 1 cm, within a cell).
+        assert share > 0.85
+        assert 0 < np.mean(ranges >= preset.laser.range_max) < 0.1  # max-range dropouts
+        kidnapped = np.array(run["kidnapped"])
+        jumps = np.r_[0.0, np.hypot(*np.diff(gt[:, :2], axis=0).T)]
+        expected = preset.runs.kidnaps_per_query_run if name.startswith("query") else 0
+        assert kidnapped.sum() == expected and np.all(jumps[kidnapped] > 5.0)
+        assert np.all(jumps[~kidnapped] <= 3 * preset.runs.step_m)
+        assert all(run["image_id"])
+
+
+def test_change_keeps_the_building_and_alters_its_contents(site, tmp_path):
+    changed = synth(tmp_path / "changed", change=True)
+    before, after = (json.loads((p / "synth_report.json").read_text()) for p in (site, changed))
+    assert after["changed"] and not before["changed"]
+    site_a, site_b = (yaml.safe_load((p / "site.yaml").read_text()) for p in (site, changed))
+    assert site_b.pop("name") == site_a.pop("name") + "-changed" and site_a == site_b
+    # The same building: stops are resampled on the new map (moved furniture frees or takes space) but stay many.
+    assert abs(after["stops"] - before["stops"]) <= 0.2 * before["stops"]
+    a, b = (np.asarray(read_map(p / "map.yaml").grid) for p in (site, changed))
+    walls_kept = np.mean((a == OCCUPIED) == (b == OCCUPIED))
+    assert 0.97 < walls_kept < 1.0  # furniture moved, walls did not
+    assert after["objects_per_class"]["poster"] >= before["objects_per_class"]["poster"]
+    img = "images/stop0000_v0.jpg"
+    assert (changed / img).read_bytes() != (site / img).read_bytes()
+
+
+def test_missing_meshes_fall_back_to_procedural_shapes_or_fail_clearly(tmp_path, monkeypatch):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    monkeypatch.setenv("SITELOC_SH3D_FURNITURE", str(empty))
+    monkeypatch.setenv("SITELOC_SH3D_JAR", str(empty))
+    monkeypatch.setenv("SITELOC_ASSETS", str(tmp_path / "cache"))
+    with pytest.raises(AssetsUnavailableError, match="sweethome3d-furniture"):
+        synth(tmp_path / "strict", allow_fallback=False)
+    assert not (tmp_path / "strict").exists()
+    with pytest.warns(Warning, match="procedural"):
+        out = run_synth(micro(**{"stops.spacing": 4.0, "runs.steps_per_run": 4}), outputs={"out": tmp_path / "fb"},
+                        seed=1, progress=False)
+    report = json.loads((out / "synth_report.json").read_text())
+    assert report["assets_procedural"] and report["assets_missing"]
+    assert sum(report["boxes_per_class"].values()) > 0
+    assert "procedural" in (out / "ATTRIBUTION.md").read_text()
+
+
+def test_cli_reports_counts_and_refuses_bad_overrides(tmp_path):
+    from stages.app import app
+
+    runner = CliRunner()
+    res = runner.invoke(app, ["synth", "--preset", "tiny", "--out", str(tmp_path / "x"), "--set", "floor.nope=1"])
+    assert res.exit_code == 1 and "floor.nope" in res.output and "Traceback" not in res.output
+    res = runner.invoke(app, ["synth", "--preset", "nowhere", "--out", str(tmp_path / "x")])
+    assert res.exit_code == 1 and "tiny" in res.output
+    args = ["synth", "--preset", "tiny", "--out", str(tmp_path / "ok"), "--seed", "2"]
+    for key, value in {**MICRO, "stops.spacing": 4.0, "runs.steps_per_run": 4}.items():
+        args += ["--set", f"{key}={json.dumps(value)}"]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert "stops" in res.output and "images/s" in res.output and "boxes per class: door" in res.output
+    res = runner.invoke(app, args)
+    assert res.exit_code == 1 and "--force" in res.output
