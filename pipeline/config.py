@@ -90,11 +90,22 @@ class IngestLogConfig(Strict):
     mapping: MappingConfig = MappingConfig()
 
 
+class SynthConfig(Strict):
+    """Which reference site the pipeline builds when it has no captures of the user's (`siteloc synth`)."""
+
+    site: str = Field("office", description="site preset in configs/sites/ (tiny, office, paper) or a YAML path")
+    seed: int = Field(0, description="seed of the layout, furnishing, stops, runs and noise")
+    preset_overrides: dict[str, Any] = Field(
+        default_factory=dict, description="site preset keys to override, e.g. {camera.width: 320}"
+    )
+
+
 class SitelocConfig(Strict):
     """The whole configuration; each stage reads its own section."""
 
     preset: str = Field("default", description="name of the preset this config came from")
     seed: int = 0
+    synth: SynthConfig = SynthConfig()
     ingest: IngestConfig = IngestConfig()
     ingest_log: IngestLogConfig = IngestLogConfig()
 

@@ -1,6 +1,8 @@
-"""The main job on shipped data: every real CARMEN log -> runs + map, and the example site -> site database.
+"""The main job on data the project ships or generates.
 
-Later stages (reference site, detector, retrieval, bundle, localization) join this chain as they land.
+The reference site of the config (`synth.site`, office for the demo) is rendered and ingested, every real
+CARMEN log becomes runs + map, and the documented example site is ingested. Later stages (detector,
+retrieval, bundle, localization) join this chain as they land.
 Steps whose output is already complete are reused, so an interrupted demo resumes where it stopped.
 """
 
@@ -27,9 +29,20 @@ class DemoStep:
     report: dict
 
 
-def _complete(out: Path) -> bool:
-    # report.json is written inside the atomic output directory, so its presence means the step finished.
-    return (out / "report.json").is_file() and (out / "config.yaml").is_file()
+def _complete(out: Path, report: str = "report.json") -> bool:
+    # The report is written inside the atomic output directory, so its presence means the step finished.
+    return (out / report).is_file() and (out / "config.yaml").is_file()
+
+
+def _same_synth(site_dir: Path, preset, seed: int) -> bool:
+    """Whether the site there was made from this preset and seed (another config must not reuse it)."""
+    import yaml
+
+    try:
+        made = yaml.safe_load((site_dir / "config.yaml").read_text())
+    except (OSError, yaml.YAMLError):
+        return False
+    return made.get("seed") == seed and not made.get("change") and made.get("preset") == preset.model_dump(mode="json")
 
 
 def run_demo(
@@ -43,12 +56,27 @@ def run_demo(
     """Run the chain into `outputs['data']`; returns one entry per step with its report."""
     from pipeline.ingest import run_ingest
     from pipeline.ingest_log import run_ingest_log, run_name
+    from pipeline.sitegen.presets import load_site_preset
+    from pipeline.sitegen.synth import run_synth
 
     inputs = inputs or {}
     carmen_dir = Path(inputs.get("carmen_dir", DEFAULT_CARMEN_DIR))
     example = Path(inputs.get("example_site", EXAMPLE_SITE))
     data = Path(outputs["data"])
     steps: list[DemoStep] = []
+
+    preset = load_site_preset(cfg.synth.site, cfg.synth.preset_overrides)
+    site_dir = data / "reference" / "site"  # where dvc.yaml's synth stage writes it too
+    reused = _complete(site_dir, "synth_report.json") and not force and _same_synth(site_dir, preset, cfg.synth.seed)
+    if not reused:
+        run_synth(preset, outputs={"out": site_dir}, seed=cfg.synth.seed, force=True, progress=progress)
+    steps.append(DemoStep(f"synth {preset.name}", site_dir, reused,
+                          json.loads((site_dir / "synth_report.json").read_text())))
+    out = data / "reference" / "ingested"
+    reused = _complete(out) and not force and steps[-1].reused
+    if not reused:
+        run_ingest(cfg, inputs={"site": site_dir}, outputs={"out": out}, force=True, progress=progress)
+    steps.append(DemoStep(f"ingest {preset.name}", out, reused, json.loads((out / "report.json").read_text())))
 
     logs = sorted(carmen_dir.glob("*.log.gz")) + sorted(carmen_dir.glob("*.log")) if carmen_dir.is_dir() else []
     for log in logs:

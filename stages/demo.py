@@ -11,13 +11,15 @@ from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, l
 
 HELP = """Run the main job end to end on data that ships with the project.
 
-Today this ingests every real CARMEN laser log in ../shared/data/carmen (runs table, occupancy map
-built from the scans, preview PNG; see `siteloc ingest-log`) and the example capture directory of
-docs/example-site (see `siteloc ingest`), then prints a summary. Later versions add the reference
-site, detector training, retrieval, the bundle and localization.
+Today this renders the reference site of the config (`synth.site`: office for the demo preset, a
+micro site for ci; see `siteloc synth`) and ingests it, ingests every real CARMEN laser log in
+../shared/data/carmen (runs table, occupancy map built from the scans, preview PNG; see `siteloc
+ingest-log`) and the example capture directory of docs/example-site (see `siteloc ingest`), then
+prints a summary. Later versions add detector training, retrieval, the bundle and localization.
 
 Finished steps are reused, so an interrupted demo resumes; --force redoes everything.
-Outputs: DATA/carmen/<log>/, DATA/example/ingested/, DATA/demo-summary.json.
+Outputs: DATA/reference/site/, DATA/reference/ingested/, DATA/carmen/<log>/, DATA/example/ingested/,
+DATA/demo-summary.json.
 """
 
 
@@ -53,7 +55,11 @@ def demo(
             table.add_column(col)
         for s in steps:
             r = s.report
-            if "scans" in r:
+            if "objects_per_class" in r:
+                m = r["map"]
+                size = f"{m['width_cells'] * m['resolution']:.1f} x {m['height_cells'] * m['resolution']:.1f}"
+                share, count = "-", f"{r['capture_images']} views, {len(r['runs'])} runs"
+            elif "scans" in r:
                 size = "{:.1f} x {:.1f}".format(*r["map_size_m"])
                 share = f"{r['endpoint_on_occupied_share_tol0']:.2f} / {r['endpoint_on_occupied_share_tol1']:.2f}"
                 count = f"{r['scans']} x {r['beams']} scans"

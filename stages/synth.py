@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ForceOpt, SetOpt, VerboseOpt, cli_errors
+from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, load
 
 HELP = """Generate and render a reference office floor as a site capture directory.
 
@@ -21,10 +21,12 @@ Writes into --out: site.yaml, map.yaml + map.pgm (5 cm), captures.csv and images
 6 views 60 degrees apart), annotations.json (COCO boxes from the instance-id buffer, occlusion-aware),
 runs/<run>/ (mapping and query runs: ground truth, noisy odometry, 270-degree laser scans with noise,
 dropouts, people and moved chairs, an image per step, kidnappings flagged), contact_sheet.png,
-synth_report.json and ATTRIBUTION.md. `siteloc ingest` takes the directory as it is.
+synth_report.json, synth_timing.json, config.yaml and ATTRIBUTION.md. `siteloc ingest` takes the directory as it is.
 
 --change writes the same building after a change (moved furniture, new posters, other lighting).
---set overrides any preset key, e.g. --set camera.width=320 --set camera.height=240 --set runs.query_runs=5.
+--config picks the synth section of a preset in configs/ (demo: office; ci: a micro tiny site; paper:
+paper) and --preset / --seed / --set override it. --set overrides any site preset key, e.g.
+--set camera.width=320 --set camera.height=240 --set runs.query_runs=5.
 Every output but synth_timing.json is byte-identical for the same preset, overrides and seed.
 
 Example: siteloc synth --preset office --out data/office/site
@@ -34,14 +36,27 @@ Example: siteloc synth --preset office --out data/office/site
 def synth(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output capture directory.", show_default=False)],
     preset: Annotated[
-        str, typer.Option("--preset", "-p", help="Site preset: tiny, office, paper, or a YAML path.")
-    ] = "office",
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the layout, furnishing, stops, runs and noise.")] = 0,
-    change: Annotated[bool, typer.Option("--change", help="Write the building after an environment change.")] = False,
+        str | None,
+        typer.Option(
+            "--preset", "-p", show_default=False,
+            help="Site preset: tiny, office, paper, or a YAML path [default: the config's synth.site].",
+        ),
+    ] = None,
+    seed: Annotated[
+        int | None, typer.Option("--seed", help="Seed [default: the config's synth.seed].", show_default=False)
+    ] = None,
+    change: Annotated[
+        bool, typer.Option("--change", help="Write the building after an environment change.")
+    ] = False,
     strict_assets: Annotated[
         bool, typer.Option("--strict-assets", help="Fail instead of falling back to procedural shapes.")
     ] = False,
-    overrides: SetOpt = None,
+    overrides: Annotated[
+        list[str] | None,
+        typer.Option("--set", "-s", help="Override a site preset key, e.g. --set camera.width=320 (repeatable).",
+                     rich_help_panel="Configuration"),
+    ] = None,
+    config: ConfigOpt = "demo",
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
@@ -52,9 +67,10 @@ def synth(
         from pipeline.sitegen.presets import load_site_preset
         from pipeline.sitegen.synth import run_synth
 
-        site = load_site_preset(preset, parse_overrides(overrides))
-        path = run_synth(site, outputs={"out": out}, seed=seed, change=change, force=force,
-                         allow_fallback=not strict_assets)
+        cfg = load(config, None).synth
+        site = load_site_preset(preset or cfg.site, {**cfg.preset_overrides, **parse_overrides(overrides)})
+        path = run_synth(site, outputs={"out": out}, seed=cfg.seed if seed is None else seed, change=change,
+                         force=force, allow_fallback=not strict_assets)
         rep = json.loads((path / "synth_report.json").read_text())
         timing = json.loads((path / "synth_timing.json").read_text())
         typer.echo(

@@ -23,8 +23,13 @@ def test_demo_runs_resumes_and_forces(tmp_path):
     assert first.exit_code == 0, first.output
     assert (data / "carmen" / "room-corrected" / "map.yaml").is_file()
     assert (data / "example" / "ingested" / "images.parquet").is_file()
+    assert (data / "reference" / "ingested" / "boxes.parquet").is_file()
     summary = json.loads((data / "demo-summary.json").read_text())
     assert summary["ingest-log room-corrected"]["report"]["scans"] == 20
+    synth = summary["synth tiny"]["report"]
+    assert synth["capture_images"] == 6 * synth["stops"]
+    assert summary["ingest tiny"]["report"]["images"] == synth["capture_images"]
+    assert "synth tiny" in first.output.replace("│", " ") or "tiny" in first.output
     assert not any(step["reused"] for step in summary.values())
 
     map_pgm = data / "carmen" / "room-corrected" / "map.pgm"
@@ -40,7 +45,20 @@ def test_demo_runs_resumes_and_forces(tmp_path):
 
 
 def test_demo_without_logs_warns_and_ingests_the_example(tmp_path):
-    result = runner.invoke(app, ["demo", "--data", str(tmp_path / "d"), "--carmen-dir", str(tmp_path / "none")])
+    result = runner.invoke(
+        app, ["demo", "--data", str(tmp_path / "d"), "--carmen-dir", str(tmp_path / "none"), "--config", "ci"]
+    )
     assert result.exit_code == 0, result.output
     assert "no CARMEN logs" in result.output
     assert (tmp_path / "d" / "example" / "ingested" / "report.json").is_file()
+
+
+def test_demo_does_not_reuse_a_site_made_from_another_preset(tmp_path):
+    data = tmp_path / "d"
+    args = ["demo", "--data", str(data), "--carmen-dir", str(tmp_path / "none"), "--config", "ci"]
+    assert runner.invoke(app, args).exit_code == 0
+    again = runner.invoke(app, [*args, "--set", "synth.seed=4"])
+    assert again.exit_code == 0, again.output
+    summary = json.loads((data / "demo-summary.json").read_text())
+    assert not summary["synth tiny"]["reused"] and not summary["ingest tiny"]["reused"]
+    assert summary["synth tiny"]["report"]["seed"] == 4

@@ -164,6 +164,8 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
         report = {
             "site": scene.name, "preset": preset.name, "seed": seed, "changed": change,
             "stops": len(stops), "capture_images": len(rows),
+            "map": {"width_cells": int(occ_map.grid.shape[1]), "height_cells": int(occ_map.grid.shape[0]),
+                    "resolution": occ_map.resolution},
             "objects_per_class": scene.class_counts(), "boxes_per_class": _count_boxes(coco_anns, preset),
             "runs": run_report, "assets_procedural": bool(library.procedural), "assets_missing": list(library.missing),
             "images_rendered": stats["images"],
