@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -100,6 +100,79 @@ class SynthConfig(Strict):
     )
 
 
+class SensorModelConfig(Strict):
+    """Laser sensor model (Probabilistic Robotics ch. 6; nav2 amcl's parameter names)."""
+
+    model: Literal["likelihood_field", "beam"] = "likelihood_field"
+    max_beams: int = Field(60, ge=2, description="beams used per update, evenly subsampled (nav2: max_beams)")
+    z_hit: float = Field(0.9, ge=0, le=1)
+    z_short: float = Field(0.05, ge=0, le=1, description="beam model only")
+    z_max: float = Field(0.05, ge=0, le=1, description="beam model only")
+    z_rand: float = Field(0.1, ge=0, le=1)
+    sigma_hit: float = Field(0.2, gt=0, description="m (nav2: 0.2)")
+    lambda_short: float = Field(0.1, gt=0, description="beam model only, 1/m")
+    max_distance: float = Field(2.0, gt=0, description="likelihood field: distances are capped here, m")
+    range_min: float = Field(0.05, ge=0, description="returns below this are ignored, m")
+    temperature: float = Field(
+        1.0, ge=1.0, description="log-likelihoods are divided by this (beams are not independent; 1 = none)"
+    )
+
+
+class KldConfig(Strict):
+    err: float = Field(0.05, gt=0, lt=1, description="KLD bound epsilon (nav2: pf_err)")
+    delta: float = Field(0.01, gt=0, lt=1, description="1 - confidence; z = Phi^-1(1 - delta), not delta itself")
+    bin_xy: float = Field(0.5, gt=0, description="histogram bin size, m")
+    bin_theta_deg: float = Field(10.0, gt=0, le=180, description="histogram bin size in heading, degrees")
+
+
+class KidnapConfig(Strict):
+    """The paper's rule (best particle likelihood below a threshold) over several updates, plus w_fast/w_slow."""
+
+    min_likelihood: float = Field(
+        0.1, gt=0, le=1, description="per-beam likelihood of the best particle, as a share of a perfect match's"
+    )
+    updates: int = Field(3, ge=1, description="consecutive updates below the threshold before declaring lost")
+    fast_slow_ratio: float = Field(0.3, gt=0, lt=1, description="w_fast / w_slow below this also counts")
+    converged_std_m: float = Field(0.5, gt=0, description="position std of the best cluster to call it tracking")
+    converged_share: float = Field(0.8, gt=0, le=1, description="weight of the best cluster to call it tracking")
+    reinit_uniform: bool = Field(
+        True, description="when lost, restart global localization (candidates injected later still help)"
+    )
+
+
+class FilterConfig(Strict):
+    """The runtime filter: adaptive Monte Carlo localization on the laser map (seed 000, section 3.2)."""
+
+    method: Literal["amcl", "kld", "mcl", "mixture"] = Field(
+        "amcl", description="amcl: augmented MCL + KLD; kld: KLD only; mcl: fixed count; mixture: mixture MCL"
+    )
+    seed: int = 0
+    min_particles: int = Field(500, ge=10)
+    max_particles: int = Field(5000, ge=10)
+    alpha_slow: float = Field(0.001, ge=0, le=1)
+    alpha_fast: float = Field(0.1, ge=0, le=1)
+    motion: OdometryNoise = Field(
+        default_factory=lambda: OdometryNoise(alpha1=0.02, alpha2=0.005, alpha3=0.02, alpha4=0.005),
+        description="the filter's own motion noise (wider than the data's, as a filter's should be)",
+    )
+    sensor: SensorModelConfig = SensorModelConfig()
+    kld: KldConfig = KldConfig()
+    kidnap: KidnapConfig = KidnapConfig()
+    update_min_d: float = Field(0.2, ge=0, description="update after this much travel, m")
+    update_min_a_deg: float = Field(20.0, ge=0, description="... or this much turn, degrees")
+    init_std_xy: float = Field(0.5, gt=0, description="spread around a pose or candidate, m")
+    init_std_theta_deg: float = Field(15.0, gt=0, description="spread around a pose or candidate, degrees")
+    candidate_weights: tuple[float, ...] = Field((4.0, 3.0, 2.0, 1.0), min_length=1)
+    inject_particles: int = Field(1000, ge=0, description="particles injected around candidates per step when lost")
+    mixture_share: float = Field(0.1, ge=0, le=1, description="mixture MCL: share drawn from the dual proposal")
+
+    @model_validator(mode="after")
+    def _counts(self) -> FilterConfig:
+        if self.min_particles > self.max_particles:
+            raise ValueError(f"min_particles {self.min_particles} > max_particles {self.max_particles}")
+        return self
+
+
 class SitelocConfig(Strict):
     """The whole configuration; each stage reads its own section."""
 
@@ -108,6 +181,7 @@ class SitelocConfig(Strict):
     synth: SynthConfig = SynthConfig()
     ingest: IngestConfig = IngestConfig()
     ingest_log: IngestLogConfig = IngestLogConfig()
+    filter: FilterConfig = FilterConfig()
 
 
 def format_validation_error(source: str, err: ValidationError, root: type[BaseModel] | None = None) -> str:

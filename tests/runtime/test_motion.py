@@ -138,5 +138,6 @@ def test_seeded_and_input_untouched():
 
 
 def test_runtime_does_not_import_torch():
-    code = "import sys, pipeline.runtime.motion; assert 'torch' not in sys.modules, 'torch was imported'"
+    code = ("import sys, pipeline.runtime.motion, pipeline.runtime.amcl, pipeline.runtime.kernels; "
+            "assert not {'torch', 'torchvision', 'cv2'} & set(sys.modules), 'a heavy module was imported'")
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -1,0 +1,244 @@
+"""Adaptive Monte Carlo localization on a laser map (seed 000 section 3.2 and Algorithm 1; Thrun et al. ch. 8).
+
+One filter, four methods (`FilterConfig.method`), so the paper's comparisons run in the same code:
+
+- `amcl`: augmented MCL (random free-space particles with probability max(0, 1 - w_fast / w_slow))
+  plus KLD-sampling: what the robot runs.
+- `kld`: KLD-sampling only. `mcl`: a fixed count (max_particles), no injection.
+- `mixture`: mixture MCL (Thrun, Fox, Burgard, Dellaert 2001): a share of each new set is drawn from
+  the dual proposal (free-space poses drawn in proportion to the scan's likelihood) and weighted by the
+  prior belief's density there (a kernel density estimate of the moved particles).
+
+Updates are gated by travel (update_min_d, update_min_a) as in nav2: between updates odometry only
+accumulates. States: `tracking`, `lost` (the kidnap rule fired), `relocalising` (after a global start or
+an injection, until one cluster holds the weight and is tight). The kidnap rule is the paper's (the best
+particle's likelihood below a threshold) made robust: the per-beam relative likelihood, several updates
+in a row, or w_fast / w_slow collapsing. `inject` is the hook image retrieval calls while lost.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+from scipy.special import logsumexp
+
+from pipeline.io.odometry import noise_alphas
+from pipeline.runtime.estimate import PoseEstimate, estimate_pose
+from pipeline.runtime.grid import LaserMap
+from pipeline.runtime.motion import odometry_delta, sample_motion_model_odometry, wrap_angle
+from pipeline.runtime.sampling import kld_resample, low_variance_indices
+from pipeline.runtime.sensor import Scan, make_sensor_model
+
+
+class FilterState(StrEnum):
+    TRACKING = "tracking"
+    LOST = "lost"
+    RELOCALISING = "relocalising"
+
+
+@dataclass(frozen=True)
+class StepResult:
+    pose: np.ndarray
+    covariance: np.ndarray
+    state: FilterState
+    particles: int
+    updated: bool  # False when the update was gated (not enough motion) or skipped (bad odometry)
+    best_likelihood: float  # per-beam relative likelihood of the best particle, (0, 1]
+    w_fast: float
+    w_slow: float
+    clusters: int
+    cluster_weight: float
+
+
+class AdaptiveMCL:
+    def __init__(self, lmap: LaserMap, cfg, *, range_max: float,
+                 base_from_laser: tuple[float, float, float] = (0.0, 0.0, 0.0)):
+        self.map, self.cfg = lmap, cfg
+        self.sensor = make_sensor_model(lmap, cfg.sensor, range_max, base_from_laser)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.alpha = noise_alphas(cfg.motion)
+        self.bin_theta = math.radians(cfg.kld.bin_theta_deg)
+        self.particles = lmap.sample_free(cfg.max_particles, self.rng)
+        self.log_w = np.full(len(self.particles), -math.log(len(self.particles)))
+        self.state = FilterState.RELOCALISING
+        self.w_slow = self.w_fast = 0.0
+        self._odom: np.ndarray | None = None  # odometry at the last applied update
+        self._force = True
+        self._low_updates = 0
+        self._best = 1.0
+        self._estimate = estimate_pose(self.particles, self.weights, cfg.kld.bin_xy, self.bin_theta)
+
+    # ------------------------------------------------------------------------------------ initialisation
+
+    def _reset(self, particles: np.ndarray, state: FilterState) -> None:
+        self.particles = particles
+        self.log_w = np.full(len(particles), -math.log(len(particles)))
+        self.state = state
+        self.w_slow = self.w_fast = 0.0
+        self._low_updates = 0
+        self._force = True
+        self._estimate = estimate_pose(self.particles, self.weights, self.cfg.kld.bin_xy, self.bin_theta)
+
+    def init_uniform(self, n: int | None = None) -> None:
+        """Global localization: particles uniform over the free space."""
+        self._reset(self.map.sample_free(n or self.cfg.max_particles, self.rng), FilterState.RELOCALISING)
+
+    def init_pose(self, pose, std_xy: float | None = None, std_theta: float | None = None,
+                  n: int | None = None) -> None:
+        """Tracking from a known pose: a Gaussian around it."""
+        c = self.cfg
+        parts = self.map.sample_around(np.asarray(pose, dtype=np.float64)[None], np.ones(1), n or c.max_particles,
+                                       std_xy or c.init_std_xy, std_theta or math.radians(c.init_std_theta_deg),
+                                       self.rng)
+        self._reset(parts, FilterState.TRACKING)
+
+    def init_candidates(self, poses, weights=None, n: int | None = None) -> None:
+        """Weighted candidate poses (image retrieval's Top-K; 4:3:2:1 by default), each with a Gaussian spread."""
+        self._reset(self._around(poses, weights, n or self.cfg.max_particles), FilterState.RELOCALISING)
+
+    def inject(self, poses, weights=None, n: int | None = None) -> int:
+        """Add n particles drawn around candidate poses (the paper: 1000 per step while lost).
+
+        The set grows by n up to max_particles; beyond that the lightest old particles make room. New
+        particles get the mean weight, so the next scan decides between them and the old hypotheses.
+        """
+        n = min(n if n is not None else self.cfg.inject_particles, self.cfg.max_particles)
+        if n <= 0:
+            return 0
+        new = self._around(poses, weights, n)
+        room = self.cfg.max_particles - n
+        if len(self.particles) > room:
+            keep = np.argsort(-self.log_w, kind="stable")[:room]
+            self.particles, self.log_w = self.particles[keep], self.log_w[keep]
+        mean_w = logsumexp(self.log_w) - math.log(max(len(self.log_w), 1)) if len(self.log_w) else 0.0
+        self.particles = np.vstack([self.particles, new])
+        self.log_w = np.r_[self.log_w, np.full(n, mean_w)]
+        self.log_w -= logsumexp(self.log_w)
+        if self.state == FilterState.LOST:
+            self.state = FilterState.RELOCALISING
+        self._force = True
+        return n
+
+    def _around(self, poses, weights, n: int) -> np.ndarray:
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        if weights is None:
+            w = np.asarray(self.cfg.candidate_weights[: len(poses)], dtype=np.float64)
+            w = np.pad(w, (0, len(poses) - len(w)), constant_values=w[-1] if len(w) else 1.0)
+        else:
+            w = np.asarray(weights, dtype=np.float64)
+        if len(w) != len(poses) or not np.all(np.isfinite(w)) or w.sum() <= 0 or np.any(w < 0):
+            raise ValueError(f"candidate weights {w.tolist()} do not fit {len(poses)} candidate poses")
+        return self.map.sample_around(poses, w, n, self.cfg.init_std_xy, math.radians(self.cfg.init_std_theta_deg),
+                                      self.rng)
+
+    # -------------------------------------------------------------------------------------------- update
+
+    @property
+    def weights(self) -> np.ndarray:
+        return np.exp(self.log_w - logsumexp(self.log_w))
+
+    @property
+    def estimate(self) -> PoseEstimate:
+        return self._estimate
+
+    def update(self, odom, scan: Scan | None) -> StepResult:
+        """Apply one odometry reading (x, y, theta in the odometry frame) and, if travel allows, the scan."""
+        odom = np.asarray(odom, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(odom)):
+            return self._result(False)
+        if self._odom is None:
+            self._odom = odom
+        rot1, trans, rot2 = odometry_delta(self._odom, odom)
+        turn = abs(float(wrap_angle(rot1 + rot2)))
+        moved = trans >= self.cfg.update_min_d or turn >= math.radians(self.cfg.update_min_a_deg)
+        if not (moved or self._force):
+            return self._result(False)
+        self.particles = sample_motion_model_odometry(self.particles, self._odom, odom, self.alpha, self.rng)
+        self._odom = odom
+        self._force = False
+        if scan is not None:
+            self._measure(scan)
+        self._estimate = estimate_pose(self.particles, self.weights, self.cfg.kld.bin_xy, self.bin_theta)
+        self._update_state()
+        return self._result(True)
+
+    def _measure(self, scan: Scan) -> None:
+        c = self.cfg
+        res = self.sensor.evaluate(self.particles, scan)
+        if res.beams_used == 0:
+            return
+        prior = self.weights
+        self.log_w = self.log_w + res.log_likelihood
+        self.log_w -= logsumexp(self.log_w)
+        self._best = float(res.relative_likelihood.max())
+        w_avg = float(prior @ res.relative_likelihood)
+        if self.w_slow == 0.0:
+            self.w_slow, self.w_fast = w_avg, w_avg
+        else:
+            self.w_slow += c.alpha_slow * (w_avg - self.w_slow)
+            self.w_fast += c.alpha_fast * (w_avg - self.w_fast)
+        low = self._best < c.kidnap.min_likelihood or (self.w_slow > 0 and self.w_fast / self.w_slow
+                                                         < c.kidnap.fast_slow_ratio)
+        self._low_updates = self._low_updates + 1 if low else 0
+        self._resample(scan, res.log_likelihood)
+
+    def _resample(self, scan: Scan, log_lik: np.ndarray) -> None:
+        c = self.cfg
+        w = self.weights
+        if c.method == "mcl":
+            self.particles = self.particles[low_variance_indices(w, c.max_particles, self.rng)]
+        else:
+            self.particles = kld_resample(self.particles, w, min_n=c.min_particles, max_n=c.max_particles,
+                                          err=c.kld.err, delta=c.kld.delta, bin_xy=c.kld.bin_xy,
+                                          bin_theta=self.bin_theta, rng=self.rng)
+        n = len(self.particles)
+        self.log_w = np.full(n, -math.log(n))
+        if c.method == "amcl" and self.w_slow > 0:
+            p_random = max(0.0, 1.0 - self.w_fast / self.w_slow)
+            swap = self.rng.random(n) < p_random
+            if swap.any():
+                self.particles[swap] = self.map.sample_free(int(swap.sum()), self.rng)
+        elif c.method == "mixture" and c.mixture_share > 0:
+            self._mix_dual(scan)
+
+    def _mix_dual(self, scan: Scan) -> None:
+        """Replace a share of the set by dual-proposal draws weighted by the prior belief's density."""
+        from scipy.spatial import cKDTree
+
+        c = self.cfg
+        n = len(self.particles)
+        m = max(1, int(round(c.mixture_share * n)))
+        pool = self.map.sample_free(8 * m, self.rng)
+        lik = self.sensor.evaluate(pool, scan).log_likelihood
+        dual = pool[low_variance_indices(np.exp(lik - lik.max()), m, self.rng)]
+        # Prior density at the dual draws: Gaussian kernel over the forward particles (x, y; 0.5 m bandwidth).
+        tree = cKDTree(self.particles[:, :2])
+        bandwidth = 0.5
+        counts = np.array([len(v) for v in tree.query_ball_point(dual[:, :2], 2 * bandwidth)], dtype=np.float64)
+        density = counts / n + 1e-12
+        keep = self.rng.permutation(n)[: n - m]
+        self.particles = np.vstack([self.particles[keep], dual])
+        w = np.r_[np.full(n - m, (1.0 - c.mixture_share) / (n - m)), c.mixture_share * density / density.sum()]
+        self.log_w = np.log(w)
+
+    def _update_state(self) -> None:
+        k = self.cfg.kidnap
+        est = self._estimate
+        if self.state == FilterState.TRACKING:
+            if self._low_updates >= k.updates:
+                self.state = FilterState.LOST
+                if k.reinit_uniform:
+                    self.particles = self.map.sample_free(self.cfg.max_particles, self.rng)
+                    self.log_w = np.full(len(self.particles), -math.log(len(self.particles)))
+                    self._force = True
+        elif (est.cluster_weight >= k.converged_share and est.std_xy <= k.converged_std_m
+              and self._best >= k.min_likelihood and self._low_updates == 0):
+            self.state = FilterState.TRACKING
+
+    def _result(self, updated: bool) -> StepResult:
+        e = self._estimate
+        return StepResult(e.pose.copy(), e.covariance.copy(), self.state, len(self.particles), updated, self._best,
+                          self.w_fast, self.w_slow, e.clusters, e.cluster_weight)

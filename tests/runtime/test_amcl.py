@@ -1,0 +1,161 @@
+"""The filter on a small generated floor: global convergence, kidnap recovery, candidates, robustness."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pipeline.config import FilterConfig
+from pipeline.runtime.amcl import AdaptiveMCL, FilterState
+from pipeline.runtime.grid import LaserMap
+from pipeline.runtime.sensor import Scan
+from pipeline.sitegen.laser import LaserScanner, rasterise_map
+from pipeline.sitegen.trajectories import make_runs, sample_stops
+from tests.sitegen.small_floor import small_floor
+
+RANGE_MAX = 30.0
+
+
+@pytest.fixture(scope="module")
+def world():
+    scene = small_floor()
+    occ = rasterise_map(scene)
+    stops = sample_stops(scene, occ, spacing=2.0, clearance=0.45, jitter=0.3, seed=4)
+    runs = make_runs(scene, occ, stops, n_mapping=1, n_query=1, steps_per_run=120, step=0.3,
+                     kidnaps_per_query_run=1, seed=5)
+    scanner = LaserScanner(occ, beams=271, fov_deg=270, range_max=RANGE_MAX, seed=1)
+    scans = {r.name: scanner.cast_many(r.gt) for r in runs}
+    return occ, {r.name: r for r in runs}, scans, scanner
+
+
+def make(occ, **cfg) -> AdaptiveMCL:
+    c = FilterConfig(**{"min_particles": 300, "max_particles": 3000, **cfg})
+    return AdaptiveMCL(LaserMap.from_occupancy(occ, c.sensor.max_distance), c, range_max=RANGE_MAX)
+
+
+def scan_of(scanner, ranges) -> Scan:
+    return Scan(ranges, scanner.angle_min, scanner.angle_increment, RANGE_MAX)
+
+
+def replay(f: AdaptiveMCL, run, ranges, scanner, start=0, stop=None, on_step=None):
+    errors, states, counts = [], [], []
+    for i in range(start, stop or len(run.gt)):
+        r = f.update(run.odom[i], scan_of(scanner, ranges[i]))
+        w = f.weights
+        assert np.all(np.isfinite(f.particles)) and np.all(np.isfinite(w)) and w.sum() == pytest.approx(1.0)
+        errors.append(math.hypot(*(r.pose[:2] - run.gt[i, :2])))
+        states.append(r.state)
+        counts.append(r.particles)
+        if on_step:
+            on_step(i, f, r)
+    return np.array(errors), states, np.array(counts)
+
+
+def test_global_localization_converges_from_uniform(world):
+    occ, runs, scans, scanner = world
+    f = make(occ)
+    f.init_uniform()
+    errors, states, counts = replay(f, runs["mapping_00"], scans["mapping_00"], scanner)
+    assert np.all(errors[-40:] < 0.25), errors[-40:]
+    assert states[-1] == FilterState.TRACKING
+    assert counts[-1] < 1000 < counts.max()  # KLD keeps many particles while unsure, few once the belief is tight
+
+
+def test_kidnapping_is_detected_and_recovered(world):
+    occ, runs, scans, scanner = world
+    run = runs["query_00"]
+    (k,) = np.nonzero(run.kidnapped)[0]
+    f = make(occ)
+    f.init_pose(run.gt[0])
+    errors, states, _ = replay(f, run, scans["query_00"], scanner)
+    assert np.all(errors[:k] < 0.25)
+    assert FilterState.LOST in states[k:k + 5]
+    recovered = k + int(np.argmax(errors[k:] < 0.25))
+    assert recovered - k <= 10 and np.all(errors[recovered + 3:] < 0.3)
+
+
+def test_candidates_seed_and_injection_recover(world):
+    occ, runs, scans, scanner = world
+    run, ranges = runs["mapping_00"], scans["mapping_00"]
+    f = make(occ)
+    wrong = [run.gt[0] + [3.0, 1.0, 1.0], run.gt[0] + [-4.0, 0.5, 2.0], run.gt[0] + [6.0, 0.0, 0.0]]
+    f.init_candidates([wrong[0], run.gt[0], wrong[1], wrong[2]])  # the true pose second: weight 3 of 10
+    errors, _, _ = replay(f, run, ranges, scanner, stop=6)
+    assert np.all(errors[2:] < 0.3)
+
+    # Kidnapped, with no global restart: only the candidates injected while lost bring it back.
+    run, ranges = runs["query_00"], scans["query_00"]
+    (k,) = np.nonzero(run.kidnapped)[0]
+    lost = make(occ, kidnap={"reinit_uniform": False}, method="kld")
+    lost.init_pose(run.gt[0])
+    injected = []
+
+    def inject_when_lost(i, filt, res):
+        if res.state == FilterState.LOST and i + 1 < len(run.gt):
+            injected.append(filt.inject([run.gt[i + 1] + [0.3, -0.2, 0.1]]))
+
+    errors, states, _ = replay(lost, run, ranges, scanner, on_step=inject_when_lost)
+    assert injected and injected[0] == 1000
+    assert states[-1] == FilterState.TRACKING and np.all(errors[k + 10:] < 0.3)
+
+
+@pytest.mark.parametrize("method", ["mcl", "kld", "mixture"])
+def test_baseline_methods_track(world, method):
+    occ, runs, scans, scanner = world
+    run = runs["mapping_00"]
+    f = make(occ, method=method, max_particles=1000, min_particles=200)
+    f.init_pose(run.gt[0])
+    errors, _, counts = replay(f, run, scans["mapping_00"], scanner, stop=50)
+    assert np.median(errors) < 0.15
+    if method == "mcl":
+        assert np.all(counts == 1000)
+
+
+def test_beam_model_tracks(world):
+    occ, runs, scans, scanner = world
+    run = runs["mapping_00"]
+    f = make(occ, sensor={"model": "beam"}, max_particles=1000)
+    f.init_pose(run.gt[0])
+    errors, _, _ = replay(f, run, scans["mapping_00"], scanner, stop=50)
+    assert np.median(errors) < 0.15
+
+
+def test_bad_input_is_survived(world):
+    occ, runs, scans, scanner = world
+    run, ranges = runs["mapping_00"], scans["mapping_00"]
+    f = make(occ)
+    f.init_pose(run.gt[0])
+    f.update(run.odom[0], scan_of(scanner, ranges[0]))
+    n = len(ranges[1])
+    for bad in (np.full(n, np.nan), np.full(n, np.inf), np.zeros(n), np.full(n, -np.inf), np.array([])):
+        scan = Scan(bad, scanner.angle_min, scanner.angle_increment, RANGE_MAX)
+        r = f.update(run.odom[1] + [0.5, 0, 0], scan)
+        assert np.all(np.isfinite(r.pose)) and np.isfinite(f.weights).all()
+    assert not f.update(np.array([np.nan, 0.0, 0.0]), scan_of(scanner, ranges[2])).updated
+    r = f.update(run.odom[2] + [1e6, -1e6, 40.0], scan_of(scanner, ranges[2]))  # a huge odometry jump
+    assert np.all(np.isfinite(r.pose)) and np.isfinite(f.weights).all()
+    f.particles[:10] = [[1e5, 1e5, 0.0]]  # particles far off the map
+    r = f.update(run.odom[2] + [1e6 + 0.5, -1e6, 40.0], scan_of(scanner, ranges[3]))
+    assert np.all(np.isfinite(r.pose))
+    with pytest.raises(ValueError, match="weights"):
+        f.inject([[0, 0, 0], [1, 1, 0]], weights=[1.0])
+
+
+def test_updates_are_gated_and_seeded(world):
+    occ, runs, scans, scanner = world
+    run, ranges = runs["mapping_00"], scans["mapping_00"]
+
+    def go():
+        f = make(occ)
+        f.init_pose(run.gt[0])
+        out = [f.update(run.odom[0], scan_of(scanner, ranges[0]))]
+        out.append(f.update(run.odom[0] + [0.05, 0, 0], scan_of(scanner, ranges[0])))  # under update_min_d
+        out += [f.update(run.odom[i], scan_of(scanner, ranges[i])) for i in range(1, 10)]
+        return out
+
+    a, b = go(), go()
+    assert a[0].updated and not a[1].updated
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x.pose, y.pose)

@@ -1,0 +1,44 @@
+"""Cluster-based pose estimate: circular means, wrapped clusters, the heavier mode wins."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pipeline.runtime.estimate import cluster_labels, estimate_pose, weighted_pose
+
+
+def test_circular_mean_and_wrapped_covariance():
+    poses = np.array([[0.0, 0.0, math.pi - 0.1], [2.0, 0.0, -math.pi + 0.1]])
+    mean, cov = weighted_pose(poses, np.array([1.0, 1.0]))
+    assert abs(abs(mean[2]) - math.pi) < 1e-9  # not 0, the naive mean of the two numbers
+    assert mean[0] == pytest.approx(1.0) and cov[0, 0] == pytest.approx(1.0) and cov[2, 2] == pytest.approx(0.01)
+
+
+def test_brute_force_covariance():
+    rng = np.random.default_rng(0)
+    poses = np.column_stack([rng.normal(3, 0.3, 400), rng.normal(-1, 0.2, 400), rng.normal(0.5, 0.1, 400)])
+    w = rng.random(400)
+    mean, cov = weighted_pose(poses, w)
+    np.testing.assert_allclose(cov, np.cov(poses.T, aweights=w, bias=True), atol=1e-9)
+    np.testing.assert_allclose(mean[:2], np.average(poses[:, :2], axis=0, weights=w))
+
+
+def test_clusters_wrap_in_heading_and_split_in_space():
+    rng = np.random.default_rng(1)
+    around_pi = np.column_stack([rng.normal(1, 0.1, 200), rng.normal(1, 0.1, 200), rng.normal(math.pi, 0.05, 200)])
+    around_pi[:, 2] = (around_pi[:, 2] + math.pi) % (2 * math.pi) - math.pi  # half near +pi, half near -pi
+    far = np.column_stack([rng.normal(9, 0.1, 100), rng.normal(1, 0.1, 100), rng.normal(0, 0.05, 100)])
+    labels, n = cluster_labels(np.vstack([around_pi, far]), 0.5, math.radians(10))
+    assert n == 2 and len(set(labels[:200])) == 1 and len(set(labels[200:])) == 1
+
+
+def test_the_heavier_mode_is_the_estimate_not_the_average():
+    rng = np.random.default_rng(2)
+    a = np.column_stack([rng.normal(2, 0.05, 300), rng.normal(2, 0.05, 300), rng.normal(0, 0.02, 300)])
+    b = np.column_stack([rng.normal(12, 0.05, 200), rng.normal(2, 0.05, 200), rng.normal(0, 0.02, 200)])
+    est = estimate_pose(np.vstack([a, b]), np.r_[np.full(300, 1.0), np.full(200, 2.0)])
+    assert est.pose[0] == pytest.approx(12, abs=0.05) and est.clusters == 2
+    assert est.cluster_weight == pytest.approx(400 / 700) and est.std_xy < 0.1

@@ -1,0 +1,130 @@
+"""Sensor models against closed forms, the compiled kernels against their numpy / brute-force twins."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+
+from pipeline.config import SensorModelConfig
+from pipeline.io.map_yaml import FREE, OCCUPIED, OccupancyMap
+from pipeline.runtime import kernels
+from pipeline.runtime.grid import LaserMap
+from pipeline.runtime.sensor import BeamModel, LikelihoodFieldModel, Scan, subsample
+
+
+def box_map(w=6.0, h=4.0, res=0.05) -> OccupancyMap:
+    """A closed rectangular room: walls one cell thick on the border, free inside."""
+    grid = np.full((round(h / res), round(w / res)), FREE, dtype=np.int8)
+    grid[0, :] = grid[-1, :] = grid[:, 0] = grid[:, -1] = OCCUPIED
+    return OccupancyMap(grid, res, -1.0, -2.0)
+
+
+@pytest.fixture(scope="module")
+def lmap():
+    return LaserMap.from_occupancy(box_map(), 2.0)
+
+
+def test_distance_field_and_free_sampling(lmap):
+    # Distances are between cell centres: (0, 0) lies in column 20, the left wall is column 0.
+    assert lmap.distance_at(0.0, 0.0) == pytest.approx(1.0, abs=1e-6)
+    assert lmap.distance_at(4.93, 0.0) == pytest.approx(0.05, abs=1e-6)  # column 118, next to the wall (119)
+    assert lmap.distance_at(-50.0, 0.0) == 2.0  # off the map: "far"
+    poses = lmap.sample_free(5000, np.random.default_rng(0))
+    assert lmap.is_free(poses[:, 0], poses[:, 1]).all()
+    assert np.all((poses[:, 2] >= -math.pi) & (poses[:, 2] < math.pi))
+    assert lmap.free_area_m2 == pytest.approx((6 - 0.1) * (4 - 0.1), rel=1e-6)
+
+
+def test_subsample_keeps_ends_and_spreads_evenly():
+    idx = subsample(1081, 60)
+    assert idx[0] == 0 and idx[-1] == 1080 and len(idx) == 60
+    assert np.ptp(np.diff(idx)) <= 1
+    np.testing.assert_array_equal(subsample(30, 60), np.arange(30))
+
+
+def test_likelihood_field_matches_the_closed_form(lmap):
+    cfg = SensorModelConfig(max_beams=10, sigma_hit=0.2, z_hit=0.8, z_rand=0.2)
+    model = LikelihoodFieldModel(lmap, cfg, range_max=10.0)
+    # Robot at (0, 0) facing +x. A beam straight ahead reading 4.91 m ends in column 118, one cell (0.05 m)
+    # from the right wall's column 119; a reading of 1.01 m at +90 degrees ends in row 60, 19 cells (0.95 m)
+    # below the top wall's row 79 (the left wall is 20 cells away).
+    scan = Scan(np.array([4.91, 1.01]), 0.0, math.pi / 2, 10.0)
+    res = model.evaluate(np.array([[0.0, 0.0, 0.0]]), scan)
+
+    def logp(d):
+        return math.log(0.8 * math.exp(-0.5 * (d / 0.2) ** 2) / (math.sqrt(2 * math.pi) * 0.2) + 0.2 / 10.0)
+
+    assert res.beams_used == 2
+    assert res.log_likelihood[0] == pytest.approx(logp(0.05) + logp(0.95), abs=1e-5)
+    assert res.relative_likelihood[0] == pytest.approx(math.exp((logp(0.05) + logp(0.95)) / 2 - logp(0.0)), rel=1e-5)
+
+
+def test_invalid_readings_are_skipped_and_an_empty_scan_is_neutral(lmap):
+    model = LikelihoodFieldModel(lmap, SensorModelConfig(), range_max=10.0)
+    ok = Scan(np.array([4.91]), 0.0, 0.1, 10.0)
+    messy = Scan(np.array([4.91, np.nan, np.inf, -np.inf, 0.01, 10.0, 25.0]), 0.0, 0.1, 10.0)
+    p = np.array([[0.0, 0.0, 0.0], [1.0, 0.5, 2.0]])
+    np.testing.assert_allclose(model.evaluate(p, messy).log_likelihood, model.evaluate(p, ok).log_likelihood)
+    empty = model.evaluate(p, Scan(np.full(5, np.nan), 0.0, 0.1, 10.0))
+    assert empty.beams_used == 0 and np.all(empty.log_likelihood == 0)
+
+
+def test_off_map_particles_get_finite_low_likelihoods(lmap):
+    model = LikelihoodFieldModel(lmap, SensorModelConfig(), range_max=10.0)
+    scan = Scan(np.full(60, 2.0), -2.0, 4.0 / 59, 10.0)
+    res = model.evaluate(np.array([[1e6, -1e6, 0.3], [0.0, 0.0, 0.0], [np.float64(1e300), 0.0, 0.0]]), scan)
+    assert np.all(np.isfinite(res.log_likelihood))
+    assert res.log_likelihood[0] == pytest.approx(60 * model.log_floor, rel=1e-6)
+
+
+def test_numba_and_numpy_field_sums_agree(lmap):
+    rng = np.random.default_rng(3)
+    poses = np.column_stack([rng.uniform(-3, 7, 500), rng.uniform(-4, 4, 500), rng.uniform(-4, 4, 500)])
+    r, a = rng.uniform(0.1, 12, 300), rng.uniform(-2.4, 2.4, 300)
+    args = (poses, r * np.cos(a), r * np.sin(a), lmap.distance_padded, lmap.resolution, (lmap.origin_x, lmap.origin_y))
+    fast = kernels.field_sum(*args, backend="auto")
+    twin = kernels.field_sum(*args, backend="numpy")
+    np.testing.assert_allclose(fast, twin, rtol=1e-5)
+
+
+def test_ray_casting_matches_brute_force_marching():
+    occ = box_map()
+    occ.grid[40:45, 30:90] = OCCUPIED  # a bar across the room
+    occ.grid[10:60, 100] = OCCUPIED  # a one-cell-thick wall
+    lm = LaserMap.from_occupancy(occ, 2.0)
+    rng = np.random.default_rng(4)
+    poses = lm.sample_free(12, rng)
+    angles = np.linspace(-2.3, 2.3, 45)
+    fast = kernels.cast_rays(poses, angles, lm.occupied, kernels.safe_steps(lm.occupied), lm.resolution,
+                             (lm.origin_x, lm.origin_y), 8.0)
+    brute = kernels.cast_rays_brute(poses, angles, lm.occupied, lm.resolution, (lm.origin_x, lm.origin_y), 8.0)
+    assert np.abs(fast - brute).max() < 0.01 * lm.resolution + 1e-9
+
+
+def test_beam_model_mixture_integrates_to_one():
+    lm = LaserMap.from_occupancy(box_map(), 2.0)
+    cfg = SensorModelConfig(model="beam", z_hit=0.7, z_short=0.1, z_max=0.1, z_rand=0.1, sigma_hit=0.2,
+                            lambda_short=0.5)
+    model = BeamModel(lm, cfg, range_max=10.0)
+
+    def density(z):
+        return float(model.probabilities(np.array([z]), np.array([4.0]))[0])
+
+    mass = quad(density, 0, 10.0, points=[4.0], limit=200)[0] + float(model.probabilities(np.array([10.0]),
+                                                                                        np.array([4.0]))[0])
+    assert mass == pytest.approx(1.0, abs=1e-3)
+
+
+def test_beam_model_prefers_the_true_pose(lmap):
+    cfg = SensorModelConfig(model="beam", max_beams=30)
+    model = BeamModel(lmap, cfg, range_max=10.0)
+    angles = np.linspace(-2.3, 2.3, 30)
+    true = np.array([[1.0, 0.5, 0.4]])
+    ranges = model.expected(true, angles)[0]
+    scan = Scan(ranges, -2.3, 4.6 / 29, 10.0)
+    others = np.array([[1.3, 0.5, 0.4], [1.0, 0.5, 0.6], [3.0, -1.0, 2.0]])
+    res = model.evaluate(np.vstack([true, others]), scan)
+    assert np.argmax(res.log_likelihood) == 0 and res.relative_likelihood[0] == pytest.approx(1.0, abs=0.05)
