@@ -129,7 +129,7 @@ class KidnapConfig(Strict):
     """The paper's rule (best particle likelihood below a threshold) over several updates, plus w_fast/w_slow."""
 
     min_likelihood: float = Field(
-        0.1, gt=0, le=1, description="per-beam likelihood of the best particle, as a share of a perfect match's"
+        0.5, gt=0, le=1, description="per-beam likelihood of the best particle, as a share of a perfect match's"
     )
     updates: int = Field(3, ge=1, description="consecutive updates below the threshold before declaring lost")
     fast_slow_ratio: float = Field(0.3, gt=0, lt=1, description="w_fast / w_slow below this also counts")

@@ -69,7 +69,34 @@ RUNS = pa.schema(
     ]
 )
 
-SCHEMAS: dict[str, pa.Schema] = {"images": IMAGES, "boxes": BOXES, "runs": RUNS}
+# Per-step output of `siteloc localize`: one row per (run, trial, step).
+ESTIMATES = pa.schema(
+    [
+        pa.field("run", pa.string(), nullable=False),
+        pa.field("trial", pa.int32(), nullable=False),
+        pa.field("step", pa.int32(), nullable=False),
+        pa.field("x", pa.float64(), nullable=False),
+        pa.field("y", pa.float64(), nullable=False),
+        pa.field("theta", pa.float64(), nullable=False),
+        pa.field("cov_xx", pa.float64(), nullable=False),
+        pa.field("cov_xy", pa.float64(), nullable=False),
+        pa.field("cov_yy", pa.float64(), nullable=False),
+        pa.field("cov_tt", pa.float64(), nullable=False),
+        pa.field("state", pa.string(), nullable=False),
+        pa.field("particles", pa.int32(), nullable=False),
+        pa.field("updated", pa.bool_(), nullable=False),
+        pa.field("best_likelihood", pa.float32(), nullable=False),
+        pa.field("update_ms", pa.float32(), nullable=False),
+        pa.field("gt_x", pa.float64()),
+        pa.field("gt_y", pa.float64()),
+        pa.field("gt_theta", pa.float64()),
+        pa.field("error_xy", pa.float64()),
+        pa.field("error_theta", pa.float64()),
+        pa.field("kidnapped", pa.bool_(), nullable=False),
+    ]
+)
+
+SCHEMAS: dict[str, pa.Schema] = {"images": IMAGES, "boxes": BOXES, "runs": RUNS, "estimates": ESTIMATES}
 
 
 def _with_metadata(schema: pa.Schema, kind: str, extra: dict[str, str] | None) -> pa.Schema:

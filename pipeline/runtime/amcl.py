@@ -68,6 +68,7 @@ class AdaptiveMCL:
         self._odom: np.ndarray | None = None  # odometry at the last applied update
         self._force = True
         self._low_updates = 0
+        self._good_updates = 0
         self._best = 1.0
         self._estimate = estimate_pose(self.particles, self.weights, cfg.kld.bin_xy, self.bin_theta)
 
@@ -79,6 +80,7 @@ class AdaptiveMCL:
         self.state = state
         self.w_slow = self.w_fast = 0.0
         self._low_updates = 0
+        self._good_updates = 0
         self._force = True
         self._estimate = estimate_pose(self.particles, self.weights, self.cfg.kld.bin_xy, self.bin_theta)
 
@@ -227,16 +229,25 @@ class AdaptiveMCL:
     def _update_state(self) -> None:
         k = self.cfg.kidnap
         est = self._estimate
-        if self.state == FilterState.TRACKING:
-            if self._low_updates >= k.updates:
-                self.state = FilterState.LOST
-                if k.reinit_uniform:
-                    self.particles = self.map.sample_free(self.cfg.max_particles, self.rng)
-                    self.log_w = np.full(len(self.particles), -math.log(len(self.particles)))
-                    self._force = True
-        elif (est.cluster_weight >= k.converged_share and est.std_xy <= k.converged_std_m
-              and self._best >= k.min_likelihood and self._low_updates == 0):
-            self.state = FilterState.TRACKING
+        tight = est.cluster_weight >= k.converged_share and est.std_xy <= k.converged_std_m
+        # Lost: the scan has disagreed with the best particle for several updates while the belief is
+        # committed (tracking, or collapsed onto one wrong cluster during a search). A spread belief that
+        # fits badly is still searching and is left to the random particles.
+        if self._low_updates >= k.updates and (self.state == FilterState.TRACKING or tight):
+            self.state = FilterState.LOST
+            self._good_updates = 0
+            self._low_updates = 0
+            if k.reinit_uniform:
+                self.particles = self.map.sample_free(self.cfg.max_particles, self.rng)
+                self.log_w = np.full(len(self.particles), -math.log(len(self.particles)))
+                self._force = True
+            return
+        if self.state != FilterState.TRACKING:
+            good = tight and self._best >= k.min_likelihood and self._low_updates == 0
+            # One tight update can be a wrong mode that happened to fit; several in a row rarely are.
+            self._good_updates = self._good_updates + 1 if good else 0
+            if self._good_updates >= k.updates:
+                self.state = FilterState.TRACKING
 
     def _result(self, updated: bool) -> StepResult:
         e = self._estimate

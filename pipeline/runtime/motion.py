@@ -20,7 +20,9 @@ NAV2_MIN_TRANS = 0.01
 
 def wrap_angle(angle: np.ndarray | float) -> np.ndarray:
     """Angle(s) wrapped into [-pi, pi)."""
-    return (np.asarray(angle, dtype=np.float64) + np.pi) % (2.0 * np.pi) - np.pi
+    w = (np.asarray(angle, dtype=np.float64) + np.pi) % (2.0 * np.pi) - np.pi
+    # Rounding can land exactly on +pi (e.g. -pi - 1e-17 -> 2 pi - pi); that belongs at -pi.
+    return np.where(w >= np.pi, w - 2.0 * np.pi, w)
 
 
 def odometry_delta(

@@ -46,6 +46,13 @@ def test_wrap_angle_range_and_identity():
     np.testing.assert_allclose(np.cos(w), np.cos(a), atol=1e-12)
 
 
+def test_wrap_angle_never_returns_plus_pi():
+    a = np.array([np.pi, -np.pi, 3 * np.pi, -np.pi - 1e-17, np.nextafter(-np.pi, -4), 0.1 - 1.0 - (np.pi - 0.9)])
+    w = wrap_angle(a)
+    assert np.all(w < np.pi) and np.all(w >= -np.pi)
+    assert float(wrap_angle(np.pi)) == -np.pi
+
+
 def test_known_decomposition():
     rot1, trans, rot2 = odometry_delta(np.array([0.0, 0.0, 0.0]), np.array([1.0, 1.0, np.pi / 2]))
     assert (rot1, trans, rot2) == pytest.approx((np.pi / 4, np.sqrt(2), np.pi / 4))

@@ -1,0 +1,1 @@
+"""Replays, metrics and plots of the localization experiments."""

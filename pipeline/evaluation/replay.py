@@ -1,0 +1,107 @@
+"""Runs as the filter replays them: arrays from a runs table, kidnappings made by teleporting, candidates.
+
+A kidnapping on a real log is made the way it happens to a robot: at step k the robot is carried to
+the pose of a far-away step j of the same log and the log continues from there, while the odometry
+carries on from where it was, unaware (it receives the next steps' odometry increments, composed onto
+its own last pose). Ground truth jumps, odometry does not, `kidnapped` marks step k.
+
+Simulated retrieval candidates (for logs without images, until the image retrieval provides them):
+the true pose with retrieval-like noise plus decoys from the free space, in a seeded random order
+(with 4 candidates the true one lands at each rank a quarter of the time).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import ConfigError, InputError, Problem
+from pipeline.io import tables
+from pipeline.runtime.motion import compose_odometry, odometry_delta, wrap_angle
+
+
+@dataclass(frozen=True)
+class ReplayRun:
+    name: str
+    odom: np.ndarray  # (T, 3)
+    gt: np.ndarray | None  # (T, 3) or None
+    ranges: np.ndarray  # (T, B) float32
+    angle_min: float
+    angle_increment: float
+    range_max: float
+    kidnapped: np.ndarray  # (T,) bool
+
+    def __len__(self) -> int:
+        return len(self.odom)
+
+
+def load_run(path: Path) -> ReplayRun:
+    table = tables.read_table(path, "runs")
+    cols = table.to_pydict()
+    if table.num_rows < 2:
+        raise InputError(f"{path}: a run needs at least 2 steps", [Problem(str(path), f"{table.num_rows} rows")])
+    lengths = {len(r) for r in cols["ranges"]}
+    if len(lengths) != 1:
+        raise InputError(f"{path}: scans of different lengths {sorted(lengths)[:5]}",
+                         [Problem(str(path), "every scan of a run must have the same beams")])
+    gt = None
+    if all(v is not None for v in cols["gt_x"]):
+        gt = np.column_stack([cols["gt_x"], cols["gt_y"], cols["gt_theta"]]).astype(np.float64)
+    kidnapped = np.array([bool(v) for v in cols["kidnapped"]]) if cols.get("kidnapped") else np.zeros(table.num_rows,
+                                                                                                    bool)
+    return ReplayRun(
+        name=path.stem,
+        odom=np.column_stack([cols["odom_x"], cols["odom_y"], cols["odom_theta"]]).astype(np.float64),
+        gt=gt,
+        ranges=np.array(cols["ranges"], dtype=np.float32),
+        angle_min=float(cols["angle_min"][0]),
+        angle_increment=float(cols["angle_increment"][0]),
+        range_max=float(cols["range_max"][0]),
+        kidnapped=kidnapped,
+    )
+
+
+def teleport(run: ReplayRun, at: list[int], min_jump_m: float, seed: int) -> ReplayRun:
+    """The run with kidnappings at steps `at`: each jumps to a step >= min_jump_m away (seeded)."""
+    if run.gt is None:
+        raise ConfigError(f"run {run.name} has no ground truth: kidnappings need it to be measured")
+    rng = np.random.default_rng(seed)
+    kid = sorted(set(at))
+    for k in kid:
+        if not 0 < k < len(run):
+            raise ConfigError(f"--kidnap-at {k} is outside run {run.name}: steps 1..{len(run) - 1}")
+    src, cur = [], 0
+    for t in range(len(run)):
+        if t in kid:
+            far = np.nonzero(np.hypot(*(run.gt[:-1, :2] - run.gt[cur, :2]).T) >= min_jump_m)[0]
+            if len(far) == 0:
+                raise ConfigError(f"run {run.name}: no step lies {min_jump_m} m from step {t}'s pose; "
+                                  "lower --kidnap-min-jump or kidnap elsewhere")
+            cur = int(rng.choice(far))
+        elif t > 0:
+            cur = min(cur + 1, len(run) - 1)
+        src.append(cur)
+    src = np.array(src)
+    jumps = np.zeros(len(run), bool)
+    jumps[kid] = True
+    # Odometry: increments of the source steps, except across a jump (the odometry did not move).
+    odom = np.zeros_like(run.odom)
+    odom[0] = run.odom[src[0]]
+    for t in range(1, len(run)):
+        if jumps[t]:
+            odom[t] = odom[t - 1]
+        else:
+            d = odometry_delta(run.odom[src[t - 1]], run.odom[src[t]])
+            odom[t] = compose_odometry(odom[t - 1], *d)
+    return replace(run, odom=odom, gt=run.gt[src], ranges=run.ranges[src], kidnapped=jumps | run.kidnapped[src])
+
+
+def simulated_candidates(gt_pose: np.ndarray, lmap, n: int, rng: np.random.Generator, std_xy: float = 0.5,
+                         std_theta: float = np.radians(10.0)) -> np.ndarray:
+    """(n, 3) candidates: the true pose with noise and n - 1 free-space decoys, in a random order."""
+    true = np.asarray(gt_pose, dtype=np.float64) + rng.standard_normal(3) * [std_xy, std_xy, std_theta]
+    true[2] = wrap_angle(true[2])
+    cands = np.vstack([true[None], lmap.sample_free(n - 1, rng)])
+    return cands[rng.permutation(n)]

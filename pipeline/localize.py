@@ -1,0 +1,197 @@
+"""Stage `localize`: replay recorded runs through the runtime filter and measure it.
+
+Input: a dataset directory as `ingest` or `ingest-log` writes it (map.yaml + runs/<run>.parquet, and
+site.yaml for the laser mount when present). For each run and trial (trial t uses filter seed + t) the
+filter starts as `init` says: `uniform` (global localization), `pose` (at the first ground-truth pose),
+or `candidates` (weighted candidate poses, 4:3:2:1: simulated from ground truth until image retrieval
+provides them, and injected again each step while the filter is lost). `kidnap_at` adds kidnappings by
+teleporting (`evaluation.replay.teleport`); runs that already flag kidnappings keep theirs.
+
+Writes `estimates.parquet` (per step), `metrics.json` (per run and trial, and a summary), figures in
+`plots/` and `config.yaml`.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import SitelocConfig, write_effective_config
+from pipeline.errors import InputError, Problem
+from pipeline.io import tables
+from pipeline.io.atomic import atomic_dir, write_text_atomic
+from pipeline.io.map_yaml import read_map
+
+INITS = ("uniform", "pose", "candidates")
+
+
+def _mount(data: Path) -> tuple[float, float, float]:
+    site_yaml = data / "site.yaml"
+    if not site_yaml.is_file():
+        return (0.0, 0.0, 0.0)
+    from pipeline.io.site import read_site
+
+    m = read_site(site_yaml).laser.mount
+    return (m.x, m.y, float(np.radians(m.yaw_deg)))
+
+
+def _run_paths(data: Path, names: list[str] | None) -> list[Path]:
+    found = sorted((data / "runs").glob("*.parquet"))
+    if not found:
+        raise InputError(f"{data}: no runs", [Problem(str(data / "runs"), "no <run>.parquet files",
+                                                      fix="point at the output of `siteloc ingest` or `ingest-log`")])
+    if names:
+        by_name = {p.stem: p for p in found}
+        missing = [n for n in names if n not in by_name]
+        if missing:
+            raise InputError(f"{data}: unknown runs {missing}",
+                             [Problem(str(data / "runs"), f"run '{n}' not found", fix=f"one of {sorted(by_name)}")
+                              for n in missing])
+        return [by_name[n] for n in names]
+    return found
+
+
+def replay_one(run, lmap, fcfg, mount, init: str, trial: int) -> dict:
+    """Replay `run` once; returns per-step arrays and the final particle set."""
+    from pipeline.evaluation.replay import simulated_candidates
+    from pipeline.runtime.amcl import AdaptiveMCL, FilterState
+    from pipeline.runtime.sensor import Scan
+
+    cfg = fcfg.model_copy(update={"seed": fcfg.seed + trial})
+    f = AdaptiveMCL(lmap, cfg, range_max=run.range_max, base_from_laser=mount)
+    rng = np.random.default_rng(cfg.seed + 7_777)
+    n_cand = len(cfg.candidate_weights)
+    if init == "pose":
+        f.init_pose(run.gt[0])
+    elif init == "candidates":
+        f.init_candidates(simulated_candidates(run.gt[0], lmap, n_cand, rng))
+    else:
+        f.init_uniform()
+    scans = [Scan(r, run.angle_min, run.angle_increment, run.range_max) for r in run.ranges]
+    f.sensor.evaluate(f.particles[:2], scans[0])  # compile the kernels before timing anything
+    T = len(run)
+    out = {k: [] for k in ("pose", "cov", "state", "particles", "updated", "best", "ms")}
+    for t in range(T):
+        t0 = time.perf_counter()
+        res = f.update(run.odom[t], scans[t])
+        ms = (time.perf_counter() - t0) * 1000.0
+        if init == "candidates" and res.state == FilterState.LOST and t + 1 < T:
+            f.inject(simulated_candidates(run.gt[t + 1], lmap, n_cand, rng))
+        out["pose"].append(res.pose)
+        out["cov"].append(res.covariance)
+        out["state"].append(res.state.value)
+        out["particles"].append(res.particles)
+        out["updated"].append(res.updated)
+        out["best"].append(res.best_likelihood)
+        out["ms"].append(ms)
+    out = {k: (v if k == "state" else np.array(v)) for k, v in out.items()}
+    out["final_particles"] = f.particles.copy()
+    return out
+
+
+def run_localize(
+    cfg: SitelocConfig,
+    *,
+    inputs: dict[str, Path],
+    outputs: dict[str, Path],
+    runs: list[str] | None = None,
+    init: str = "uniform",
+    trials: int = 1,
+    kidnap_at: list[int] | None = None,
+    kidnap_min_jump_m: float = 10.0,
+    force: bool = False,
+    progress: bool = True,
+) -> Path:
+    from pipeline.evaluation import plots
+    from pipeline.evaluation.metrics import replay_metrics
+    from pipeline.evaluation.replay import load_run, teleport
+    from pipeline.progress import progress_bar
+    from pipeline.runtime.grid import LaserMap
+    from pipeline.runtime.motion import wrap_angle
+
+    if init not in INITS:
+        raise ValueError(f"init must be one of {INITS}, got '{init}'")
+    data, out = Path(inputs["data"]), Path(outputs["out"])
+    occ = read_map(data / "map.yaml")
+    lmap = LaserMap.from_occupancy(occ, cfg.filter.sensor.max_distance)
+    mount = _mount(data)
+    paths = _run_paths(data, runs)
+    loaded = [load_run(p) for p in paths]
+    for r in loaded:
+        if r.gt is None and (init != "uniform" or kidnap_at):
+            raise InputError(f"{r.name}: no ground truth", [Problem(r.name, f"--init {init} and kidnappings need it",
+                                                                    fix="use --init uniform without --kidnap-at")])
+    rows: dict[str, list] = {f.name: [] for f in tables.ESTIMATES}
+    per_run: dict[str, list[dict]] = {}
+    with atomic_dir(out, force=force) as tmp:
+        jobs = [(r, t) for r in loaded for t in range(trials)]
+        for run, trial in progress_bar(jobs, desc="replaying", unit="replay", enabled=progress):
+            if kidnap_at:
+                run = teleport(run, kidnap_at, kidnap_min_jump_m, seed=cfg.filter.seed + 1000 * trial)
+            rep = replay_one(run, lmap, cfg.filter, mount, init, trial)
+            pose = rep["pose"]
+            kid = np.nonzero(run.kidnapped)[0].tolist()
+            if run.gt is not None:
+                err = np.hypot(*(pose[:, :2] - run.gt[:, :2]).T)
+                err_t = np.abs(wrap_angle(pose[:, 2] - run.gt[:, 2]))
+                m = replay_metrics(err, [k for k in kid if k > 0], rep["particles"], rep["ms"], rep["updated"])
+            else:
+                err = err_t = np.full(len(run), np.nan)
+                m = {"steps": len(run), "update_ms_mean": round(float(np.mean(rep["ms"][rep["updated"]])), 4)}
+            per_run.setdefault(run.name, []).append({"trial": trial, **m})
+            n = len(run)
+            gt = run.gt if run.gt is not None else np.full((n, 3), np.nan)
+            cols = {"run": [run.name] * n, "trial": [trial] * n, "step": np.arange(n), "x": pose[:, 0],
+                    "y": pose[:, 1], "theta": pose[:, 2], "cov_xx": rep["cov"][:, 0, 0], "cov_xy": rep["cov"][:, 0, 1],
+                    "cov_yy": rep["cov"][:, 1, 1], "cov_tt": rep["cov"][:, 2, 2], "state": rep["state"],
+                    "particles": rep["particles"], "updated": rep["updated"], "best_likelihood": rep["best"],
+                    "update_ms": rep["ms"], "gt_x": gt[:, 0], "gt_y": gt[:, 1], "gt_theta": gt[:, 2],
+                    "error_xy": err, "error_theta": err_t, "kidnapped": run.kidnapped}
+            for k, v in cols.items():
+                rows[k].extend(list(v))
+            if trial == 0:
+                title = f"{run.name}: init {init}, {cfg.filter.method}, {cfg.filter.sensor.model}"
+                if run.gt is not None:
+                    plots.replay_figure(tmp / "plots" / f"{run.name}_error.png", title, err, rep["state"],
+                                        rep["particles"], kid)
+                plots.trajectory_figure(tmp / "plots" / f"{run.name}_map.png", occ, run.gt, pose,
+                                        rep["final_particles"], title)
+        tables.write_table(tmp / "estimates.parquet", tables.to_table("estimates", rows), "estimates",
+                           metadata={"init": init, "method": cfg.filter.method})
+        if any(v is not None for v in rows["error_xy"]):
+            errs = np.array(rows["error_xy"], dtype=np.float64)
+            run_col = np.array(rows["run"])
+            plots.error_cdf_figure(tmp / "plots" / "error_cdf.png",
+                                   {name: errs[(run_col == name) & np.isfinite(errs)] for name in per_run})
+        summary = _summary(per_run)
+        doc = {"init": init, "method": cfg.filter.method, "sensor_model": cfg.filter.sensor.model,
+               "trials": trials, "kidnap_at": kidnap_at or [], "summary": summary, "runs": per_run}
+        write_text_atomic(tmp / "metrics.json", json.dumps(doc, indent=2) + "\n")
+        write_effective_config(cfg, tmp, stage="localize", inputs={"data": data})
+    return out
+
+
+def _summary(per_run: dict[str, list[dict]]) -> dict:
+    out = {}
+    for name, trials in per_run.items():
+        if "converged_step" not in trials[0]:
+            out[name] = {"trials": len(trials)}
+            continue
+        conv = [t["converged_step"] for t in trials if t["converged_step"] is not None]
+        rec = [r for t in trials for r in t["recovery_steps"]]
+        ok = [r for r in rec if r is not None]
+        med = [t["error_median_m"] for t in trials if t["error_median_m"] is not None]
+        out[name] = {
+            "trials": len(trials),
+            "converged": len(conv),
+            "converged_step_median": float(np.median(conv)) if conv else None,
+            "error_median_m": float(np.median(med)) if med else None,
+            "kidnaps": len(rec),
+            "recovered": len(ok),
+            "recovery_steps_median": float(np.median(ok)) if ok else None,
+            "update_ms_mean": float(np.mean([t["update_ms_mean"] for t in trials if t["update_ms_mean"]])),
+        }
+    return out

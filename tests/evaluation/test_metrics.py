@@ -1,0 +1,25 @@
+"""Convergence and recovery counting, checked on hand-made error sequences."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.evaluation.metrics import first_settled, replay_metrics
+
+
+def test_first_settled_needs_a_hold_or_the_end():
+    e = np.array([5, 0.1, 0.2, 5, 0.1, 0.1, 0.1, 0.1, 5, 0.1, 0.1])
+    assert first_settled(e, 0, 0.5, hold=3) == 4  # 1..2 is too short, 4..7 holds
+    assert first_settled(e, 8, 0.5, hold=3) == 9  # the last two steps hold to the end
+    assert first_settled(e, 0, 0.01, hold=3) is None
+    assert first_settled(np.array([]), 0, 0.5, 3) is None
+
+
+def test_metrics_skip_the_kidnapped_intervals():
+    e = np.r_[np.full(5, 9.0), np.full(20, 0.1), np.full(4, 7.0), np.full(21, 0.2)]
+    m = replay_metrics(e, [25], np.full(50, 500), np.full(50, 2.0), np.ones(50, bool), hold=10)
+    assert m["converged_step"] == 5 and m["recovery_steps"] == [4] and m["recovered"] == 1
+    assert m["error_mean_m"] == np.float64(np.r_[np.full(20, 0.1), np.full(21, 0.2)].mean()).round(4)
+    never = replay_metrics(np.full(30, 3.0), [10], np.full(30, 10), np.ones(30), np.zeros(30, bool))
+    assert never["converged_step"] is None and never["recovery_steps"] == [None] and never["error_median_m"] is None
+    assert never["update_ms_mean"] is None
