@@ -29,15 +29,9 @@ from pipeline.sitegen.routes import clearance_field  # noqa: E402
 
 
 def build_scene(preset_name: str, seed: int):
-    preset = load_site_preset(preset_name)
-    try:
-        from pipeline.sitegen.layout import generate_scene
-    except ImportError:  # older layout module: plan and furnishing separately
-        from pipeline.sitegen.furnish import furnish_scene
-        from pipeline.sitegen.layout import generate_plan
+    from pipeline.sitegen.synth import build_scene as build
 
-        return furnish_scene(generate_plan(preset, seed), preset, seed)
-    return generate_scene(preset, seed)
+    return build(load_site_preset(preset_name), seed, False)
 
 
 def brute_force(occ: OccupancyMap, poses: np.ndarray, angles: np.ndarray, range_max: float) -> np.ndarray:

@@ -113,6 +113,10 @@ class SensorModelConfig(Strict):
     lambda_short: float = Field(0.1, gt=0, description="beam model only, 1/m")
     max_distance: float = Field(2.0, gt=0, description="likelihood field: distances are capped here, m")
     range_min: float = Field(0.05, ge=0, description="returns below this are ignored, m")
+    ray_cast: Literal["table", "march"] = Field(
+        "table", description="beam model: look expected ranges up in a precomputed table, or cast each ray"
+    )
+    table_angles: int = Field(180, ge=8, description="beam model table: heading bins (memory: free cells x this x 2 B)")
     temperature: float = Field(
         1.0, ge=1.0, description="log-likelihoods are divided by this (beams are not independent; 1 = none)"
     )

@@ -159,3 +159,82 @@ def cast_rays_brute(poses: np.ndarray, angles: np.ndarray, occupied: np.ndarray,
             if len(hits):
                 out[i, b] = t[hits[0]] * resolution
     return out
+
+
+# ------------------------------------------------------------------------------- precomputed range table
+
+
+def build_range_table(occupied: np.ndarray, free: np.ndarray, resolution: float, origin: tuple[float, float],
+                      n_angles: int, range_max: float, chunk: int = 8192) -> tuple[np.ndarray, np.ndarray, float]:
+    """Ranges from every free cell's centre in `n_angles` headings (bin centres), cast exactly.
+
+    Returns (cell_index (H, W) int32: row of the table or -1 for a non-free cell, table (K, n_angles)
+    uint16, unit m per count). Headings: bin j covers [-pi + j w, -pi + (j + 1) w), w = 2 pi / n_angles.
+    """
+    rows, cols = np.nonzero(free)
+    cell_index = np.full(free.shape, -1, dtype=np.int32)
+    cell_index[rows, cols] = np.arange(len(rows), dtype=np.int32)
+    width = 2.0 * math.pi / n_angles
+    angles = -math.pi + (np.arange(n_angles) + 0.5) * width
+    unit = range_max / 65535.0
+    safe = safe_steps(occupied)
+    table = np.empty((len(rows), n_angles), dtype=np.uint16)
+    for k in range(0, len(rows), chunk):
+        r, c = rows[k:k + chunk], cols[k:k + chunk]
+        poses = np.column_stack([origin[0] + (c + 0.5) * resolution, origin[1] + (r + 0.5) * resolution,
+                                 np.zeros(len(r))])
+        ranges = cast_rays(poses, angles, occupied, safe, resolution, origin, range_max)
+        table[k:k + chunk] = np.round(ranges / unit).astype(np.uint16)
+    return cell_index, table, unit
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _beam_table_numba(poses, angles, z, cell_index, table, unit, inv_res, ox, oy, range_max,
+                      z_hit, z_short, z_max, z_rand, sigma, lam, out):  # pragma: no cover - compiled
+    h, w = cell_index.shape
+    n_angles = table.shape[1]
+    bin_scale = n_angles / (2.0 * math.pi)
+    norm = 1.0 / (math.sqrt(2.0 * math.pi) * sigma)
+    short_num = np.empty(z.shape[0])
+    for b in range(z.shape[0]):  # exp(-lambda z_k) is the same for every particle
+        short_num[b] = math.exp(-lam * z[b])
+    for i in range(poses.shape[0]):
+        col = int(math.floor((poses[i, 0] - ox) * inv_res))
+        row = int(math.floor((poses[i, 1] - oy) * inv_res))
+        idx = -1
+        if 0 <= row < h and 0 <= col < w:
+            idx = cell_index[row, col]
+        acc = 0.0
+        for b in range(angles.shape[0]):
+            zs = 0.0
+            if idx >= 0:
+                a = poses[i, 2] + angles[b] + math.pi
+                a -= 2.0 * math.pi * math.floor(a / (2.0 * math.pi))
+                j = int(a * bin_scale)
+                if j >= n_angles:
+                    j = n_angles - 1
+                zs = table[idx, j] * unit
+            zb = z[b]
+            if zb >= range_max:
+                p = z_max
+            else:
+                d = (zb - zs) / sigma
+                p = z_rand / range_max
+                if d * d < 80.0:  # beyond ~9 sigma the Gaussian adds nothing a double can hold
+                    p += z_hit * norm * math.exp(-0.5 * d * d)
+                if zb < zs:
+                    p += z_short * lam * short_num[b] / (1.0 - math.exp(-lam * zs))
+            acc += math.log(max(p, 1e-300))
+        out[i] = acc
+
+
+def beam_table_loglik(poses, angles, z, cell_index, table, unit, resolution, origin, range_max, cfg) -> np.ndarray:
+    """Per pose, the beam model's sum of log p(z_k | z*_k) with z* looked up in the range table."""
+    if not HAVE_NUMBA:  # pragma: no cover
+        raise RuntimeError("the beam model needs numba (pip install numba); the likelihood field does not")
+    out = np.empty(len(poses), dtype=np.float64)
+    _beam_table_numba(np.ascontiguousarray(poses, dtype=np.float64), np.ascontiguousarray(angles, dtype=np.float64),
+                      np.ascontiguousarray(z, dtype=np.float64), cell_index, table, float(unit), 1.0 / resolution,
+                      float(origin[0]), float(origin[1]), float(range_max), cfg.z_hit, cfg.z_short, cfg.z_max,
+                      cfg.z_rand, cfg.sigma_hit, cfg.lambda_short, out)
+    return out

@@ -14,7 +14,10 @@ invalid and skipped, readings below `range_min` are skipped. Beams are subsample
   value is precomputed per cell, so an update is one lookup per endpoint. Max-range readings carry no
   endpoint and are skipped (as nav2).
 - Beam model: the mixture of hit (Gaussian around the ray-cast range), short (exponential, with the
-  1 / (1 - exp(-lambda z*)) normaliser), max and random, against exact first-hit ranges cast on the grid.
+  1 / (1 - exp(-lambda z*)) normaliser), max and random. Expected ranges come from a table precomputed
+  once per map (exact casts from every free cell's centre in `table_angles` headings; the particle's
+  cell and heading bin pick the entry, as RangeLibc's lookup table does) or, with ray_cast = march,
+  from an exact cast per particle and beam (slower; no table memory).
 """
 
 from __future__ import annotations
@@ -101,12 +104,54 @@ class LikelihoodFieldModel:
         return SensorResult(total / self.cfg.temperature, rel, len(r))
 
 
+_TABLES: dict[tuple, tuple[np.ndarray, np.ndarray, float]] = {}
+
+
+def range_table(lmap: LaserMap, n_angles: int, range_max: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """The map's precomputed range table, memoised in the process and cached on disk (arrays, no pickle).
+
+    Cache: $SITELOC_CACHE/range-tables (default ~/.cache/siteloc), keyed by the map's fingerprint, the
+    heading bins and range_max; a table is about free cells x n_angles x 2 bytes.
+    """
+    import os
+    from pathlib import Path
+
+    key = (lmap.fingerprint(), int(n_angles), float(range_max))
+    if key in _TABLES:
+        return _TABLES[key]
+    root = Path(os.environ.get("SITELOC_CACHE", Path.home() / ".cache" / "siteloc")) / "range-tables"
+    path = root / f"{key[0][:24]}-{key[1]}-{key[2]:g}.npz"
+    built = None
+    if path.is_file():
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                built = (z["cell_index"], z["table"], float(z["unit"]))
+            if built[0].shape != lmap.free.shape:
+                built = None
+        except (OSError, ValueError, KeyError):
+            built = None
+    if built is None:
+        built = kernels.build_range_table(lmap.occupied, lmap.free, lmap.resolution, (lmap.origin_x, lmap.origin_y),
+                                          n_angles, range_max)
+        try:
+            from pipeline.io.atomic import atomic_file
+
+            root.mkdir(parents=True, exist_ok=True)
+            with atomic_file(path, "wb") as fh:
+                np.savez(fh, cell_index=built[0], table=built[1], unit=np.float64(built[2]))
+        except OSError:
+            pass  # a read-only home: the table is still used, just rebuilt next time
+    _TABLES[key] = built
+    return built
+
+
 class BeamModel:
     def __init__(self, lmap: LaserMap, cfg, range_max: float,
                  base_from_laser: tuple[float, float, float] = (0.0, 0.0, 0.0)):
         self.map, self.cfg, self.range_max = lmap, cfg, float(range_max)
         self.base_from_laser = tuple(base_from_laser)
         self.safe = kernels.safe_steps(lmap.occupied)
+        self.table = range_table(lmap, cfg.table_angles, range_max) if cfg.ray_cast == "table" else None
         # Best case: a hit exactly at the expected range, short-reading density at that range ignored.
         self.log_best = math.log(cfg.z_hit / (SQRT_2PI * cfg.sigma_hit) + cfg.z_rand / range_max + cfg.z_short *
                                  cfg.lambda_short)
@@ -143,8 +188,14 @@ class BeamModel:
         n = len(particles)
         if len(z) == 0:
             return SensorResult(np.zeros(n), np.ones(n), 0)
-        z_star = self.expected(particles, a)
-        logp = np.log(np.maximum(self.probabilities(z[None, :], z_star), 1e-300)).sum(axis=1)
+        if self.table is not None:
+            cell_index, table, unit = self.table
+            logp = kernels.beam_table_loglik(laser_poses(particles, self.base_from_laser), a, z, cell_index, table,
+                                             unit, self.map.resolution, (self.map.origin_x, self.map.origin_y),
+                                             self.range_max, self.cfg)
+        else:
+            z_star = self.expected(particles, a)
+            logp = np.log(np.maximum(self.probabilities(z[None, :], z_star), 1e-300)).sum(axis=1)
         rel = np.exp(np.minimum(logp / len(z) - self.log_best, 0.0))
         return SensorResult(logp / self.cfg.temperature, rel, len(z))
 

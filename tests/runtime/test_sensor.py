@@ -128,3 +128,38 @@ def test_beam_model_prefers_the_true_pose(lmap):
     others = np.array([[1.3, 0.5, 0.4], [1.0, 0.5, 0.6], [3.0, -1.0, 2.0]])
     res = model.evaluate(np.vstack([true, others]), scan)
     assert np.argmax(res.log_likelihood) == 0 and res.relative_likelihood[0] == pytest.approx(1.0, abs=0.05)
+
+
+def test_range_table_matches_marching_at_cell_centres_and_bin_headings(tmp_path, monkeypatch):
+    monkeypatch.setenv("SITELOC_CACHE", str(tmp_path))
+    occ = box_map()
+    occ.grid[40:45, 30:90] = OCCUPIED
+    lm = LaserMap.from_occupancy(occ, 2.0)
+    cfg_t = SensorModelConfig(model="beam", max_beams=40, ray_cast="table", table_angles=72)
+    cfg_m = cfg_t.model_copy(update={"ray_cast": "march"})
+    table_model, march_model = BeamModel(lm, cfg_t, 10.0), BeamModel(lm, cfg_m, 10.0)
+    assert list(tmp_path.glob("range-tables/*.npz"))  # cached on disk, and read back identically
+    from pipeline.runtime import sensor
+
+    sensor._TABLES.clear()
+    np.testing.assert_array_equal(BeamModel(lm, cfg_t, 10.0).table[1], table_model.table[1])
+    rng = np.random.default_rng(5)
+    free = lm.sample_free(30, rng)
+    width = 2 * math.pi / 72
+    # Particles exactly at cell centres, headed so that every beam points at a bin centre: both paths agree.
+    row, col = lm.cells(free[:, 0], free[:, 1])
+    centres = np.column_stack([lm.origin_x + (col + 0.5) * lm.resolution, lm.origin_y + (row + 0.5) * lm.resolution,
+                               -math.pi + (rng.integers(0, 72, 30) + 0.5) * width])
+    angles = np.arange(-18, 18) * width
+    scan = Scan(march_model.expected(centres[:1], angles)[0] + 0.03, angles[0], width, 10.0)
+    cell_index, table, unit = table_model.table
+    bins = np.floor((centres[:, 2:3] + angles + math.pi) % (2 * math.pi) / width).astype(int)
+    looked_up = table[cell_index[row, col][:, None], bins] * unit
+    np.testing.assert_allclose(looked_up, march_model.expected(centres, angles), atol=unit)  # uint16 rounding only
+    np.testing.assert_allclose(table_model.evaluate(centres, scan).log_likelihood,
+                               march_model.evaluate(centres, scan).log_likelihood, rtol=1e-4, atol=1e-2)
+    # Elsewhere the table is within a cell and a bin of the exact answer: the true pose still wins.
+    true = np.array([[1.03, 0.47, 0.41]])
+    real = Scan(march_model.expected(true, angles)[0], angles[0], width, 10.0)
+    others = np.array([[1.4, 0.47, 0.41], [1.03, 0.47, 0.7], [3.0, -1.0, 2.0]])
+    assert np.argmax(table_model.evaluate(np.vstack([true, others]), real).log_likelihood) == 0
