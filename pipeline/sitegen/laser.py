@@ -231,11 +231,10 @@ def walking_people(
 
 
 def laser_poses(map_from_base: np.ndarray, base_from_laser: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
-    """map_from_laser (N, 3) = map_from_base * base_from_laser."""
-    p = np.asarray(map_from_base, dtype=np.float64)
-    lx, ly, lyaw = base_from_laser
-    c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
-    return np.stack([p[:, 0] + c * lx - s * ly, p[:, 1] + s * lx + c * ly, p[:, 2] + lyaw], axis=1)
+    """map_from_laser (N, 3) = map_from_base * base_from_laser (the runtime filter's own transform)."""
+    from pipeline.runtime.sensor import laser_poses as compose
+
+    return np.array(compose(np.asarray(map_from_base, dtype=np.float64), tuple(base_from_laser)), dtype=np.float64)
 
 
 class LaserScanner:
