@@ -140,7 +140,8 @@ def run_localize(
                 m = replay_metrics(err, [k for k in kid if k > 0], rep["particles"], rep["ms"], rep["updated"])
             else:
                 err = err_t = np.full(len(run), np.nan)
-                m = {"steps": len(run), "update_ms_mean": round(float(np.mean(rep["ms"][rep["updated"]])), 4)}
+                ms = rep["ms"][rep["updated"]]
+                m = {"steps": len(run), "update_ms_mean": round(float(np.mean(ms)), 4) if len(ms) else None}
             per_run.setdefault(run.name, []).append({"trial": trial, **m})
             n = len(run)
             gt = run.gt if run.gt is not None else np.full((n, 3), np.nan)
@@ -192,6 +193,7 @@ def _summary(per_run: dict[str, list[dict]]) -> dict:
             "kidnaps": len(rec),
             "recovered": len(ok),
             "recovery_steps_median": float(np.median(ok)) if ok else None,
-            "update_ms_mean": float(np.mean([t["update_ms_mean"] for t in trials if t["update_ms_mean"]])),
+            "update_ms_mean": float(np.mean(ms)) if (ms := [t["update_ms_mean"] for t in trials
+                                                            if t["update_ms_mean"] is not None]) else None,
         }
     return out
