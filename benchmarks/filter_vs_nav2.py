@@ -5,7 +5,8 @@
 
 Both filters get the same map (the intel log's, 5 cm), the same odometry and the same scans: 1081-beam
 270-degree scans cast (noise-free plus 1 cm noise) on that map along the log's ground truth, so every beam
-count can be asked of one scan; each filter subsamples to `max_beams` itself. Particle counts are fixed
+count can be asked of one scan; each filter subsamples to `max_beams` itself, and both use the same
+sensor-model parameters and odometry noise alphas (ours: the `filter` config). Particle counts are fixed
 (min = max = N; ours with method `mcl`), every call is a full update (ours with update_min_d = 0; the
 selected steps are 0.3 m apart so nav2's 0.2 m gate always opens too). Both run on one thread.
 
@@ -80,8 +81,9 @@ def nav2(occ, odom, gt, scans, n, beams, budget_s):
     import amcl
 
     cfg = FilterConfig(sensor={"model": "beam"})
-    s = cfg.sensor
-    loc = amcl.AMCL(n, n, 0.0, 0.0, amcl.MotionParameters(0.2, 0.2, 0.2, 0.2, 0.2),
+    s, m = cfg.sensor, cfg.motion
+    # The same motion noise as ours (both Thrun's alphas in std form; alpha5 is for omni drives only).
+    loc = amcl.AMCL(n, n, 0.0, 0.0, amcl.MotionParameters(m.alpha1, m.alpha2, m.alpha3, m.alpha4, 0.0),
                     amcl.LaserParameters(s.z_hit, s.z_short, s.z_max, s.z_rand, s.sigma_hit, s.lambda_short, 0.05,
                                          beams), "differential")
     loc.set_map(amcl.create_occupancy_grid_from_list(np.asarray(occ.grid).tolist(), occ.resolution, occ.origin_x,

@@ -189,52 +189,77 @@ def build_range_table(occupied: np.ndarray, free: np.ndarray, resolution: float,
 
 
 @njit(cache=True, fastmath=True, nogil=True)
-def _beam_table_numba(poses, angles, z, cell_index, table, unit, inv_res, ox, oy, range_max,
+def _beam_table_numba(poses, angles, z, cell_index, table, unit, inv_short, inv_res, ox, oy, range_max,
                       z_hit, z_short, z_max, z_rand, sigma, lam, out):  # pragma: no cover - compiled
     h, w = cell_index.shape
     n_angles = table.shape[1]
     bin_scale = n_angles / (2.0 * math.pi)
     norm = 1.0 / (math.sqrt(2.0 * math.pi) * sigma)
+    rand = z_rand / range_max
+    two_pi = 2.0 * math.pi
     short_num = np.empty(z.shape[0])
-    for b in range(z.shape[0]):  # exp(-lambda z_k) is the same for every particle
-        short_num[b] = math.exp(-lam * z[b])
+    for b in range(z.shape[0]):  # z_short lambda exp(-lambda z_k) is the same for every particle
+        short_num[b] = z_short * lam * math.exp(-lam * z[b])
     for i in range(poses.shape[0]):
         col = int(math.floor((poses[i, 0] - ox) * inv_res))
         row = int(math.floor((poses[i, 1] - oy) * inv_res))
         idx = -1
         if 0 <= row < h and 0 <= col < w:
             idx = cell_index[row, col]
+        heading = poses[i, 2] + math.pi
+        heading -= two_pi * math.floor(heading / two_pi)
         acc = 0.0
+        prod = 1.0  # a running product, logged only when it nears the double's range: one log per ~100 beams
         for b in range(angles.shape[0]):
-            zs = 0.0
+            u = 0
             if idx >= 0:
-                a = poses[i, 2] + angles[b] + math.pi
-                a -= 2.0 * math.pi * math.floor(a / (2.0 * math.pi))
+                a = heading + angles[b]
+                if a < 0.0:  # heading in [0, 2 pi) and |angle| <= 2 pi: one correction suffices
+                    a += two_pi
+                elif a >= two_pi:
+                    a -= two_pi
                 j = int(a * bin_scale)
                 if j >= n_angles:
                     j = n_angles - 1
-                zs = table[idx, j] * unit
+                u = table[idx, j]
+            zs = u * unit
             zb = z[b]
             if zb >= range_max:
                 p = z_max
             else:
                 d = (zb - zs) / sigma
-                p = z_rand / range_max
+                p = rand
                 if d * d < 80.0:  # beyond ~9 sigma the Gaussian adds nothing a double can hold
                     p += z_hit * norm * math.exp(-0.5 * d * d)
                 if zb < zs:
-                    p += z_short * lam * short_num[b] / (1.0 - math.exp(-lam * zs))
-            acc += math.log(max(p, 1e-300))
-        out[i] = acc
+                    p += short_num[b] * inv_short[u]
+            prod *= max(p, 1e-300)
+            if prod < 1e-200 or prod > 1e200:
+                acc += math.log(prod)
+                prod = 1.0
+        out[i] = acc + math.log(prod)
 
 
-def beam_table_loglik(poses, angles, z, cell_index, table, unit, resolution, origin, range_max, cfg) -> np.ndarray:
+def short_normalisers(unit: float, lam: float) -> np.ndarray:
+    """1 / (1 - exp(-lambda z*)) for every table count z* / unit (0 for z* = 0, which no reading is below)."""
+    zs = np.arange(65536, dtype=np.float64) * unit
+    with np.errstate(divide="ignore"):
+        out = 1.0 / -np.expm1(-lam * zs)
+    out[0] = 0.0
+    return out
+
+
+def beam_table_loglik(poses, angles, z, cell_index, table, unit, resolution, origin, range_max, cfg,
+                      inv_short: np.ndarray | None = None) -> np.ndarray:
     """Per pose, the beam model's sum of log p(z_k | z*_k) with z* looked up in the range table."""
     if not HAVE_NUMBA:  # pragma: no cover
         raise RuntimeError("the beam model needs numba (pip install numba); the likelihood field does not")
+    if inv_short is None:
+        inv_short = short_normalisers(unit, cfg.lambda_short)
     out = np.empty(len(poses), dtype=np.float64)
     _beam_table_numba(np.ascontiguousarray(poses, dtype=np.float64), np.ascontiguousarray(angles, dtype=np.float64),
-                      np.ascontiguousarray(z, dtype=np.float64), cell_index, table, float(unit), 1.0 / resolution,
+                      np.ascontiguousarray(z, dtype=np.float64), cell_index, table, float(unit), inv_short,
+                      1.0 / resolution,
                       float(origin[0]), float(origin[1]), float(range_max), cfg.z_hit, cfg.z_short, cfg.z_max,
                       cfg.z_rand, cfg.sigma_hit, cfg.lambda_short, out)
     return out

@@ -152,6 +152,7 @@ class BeamModel:
         self.base_from_laser = tuple(base_from_laser)
         self.safe = kernels.safe_steps(lmap.occupied)
         self.table = range_table(lmap, cfg.table_angles, range_max) if cfg.ray_cast == "table" else None
+        self.inv_short = kernels.short_normalisers(self.table[2], cfg.lambda_short) if self.table else None
         # Best case: a hit exactly at the expected range, short-reading density at that range ignored.
         self.log_best = math.log(cfg.z_hit / (SQRT_2PI * cfg.sigma_hit) + cfg.z_rand / range_max + cfg.z_short *
                                  cfg.lambda_short)
@@ -192,7 +193,7 @@ class BeamModel:
             cell_index, table, unit = self.table
             logp = kernels.beam_table_loglik(laser_poses(particles, self.base_from_laser), a, z, cell_index, table,
                                              unit, self.map.resolution, (self.map.origin_x, self.map.origin_y),
-                                             self.range_max, self.cfg)
+                                             self.range_max, self.cfg, self.inv_short)
         else:
             z_star = self.expected(particles, a)
             logp = np.log(np.maximum(self.probabilities(z[None, :], z_star), 1e-300)).sum(axis=1)
