@@ -39,31 +39,91 @@ def _cells(poses: np.ndarray, bin_xy: float, n_theta: int) -> np.ndarray:
 
 def cluster_labels(poses: np.ndarray, bin_xy: float, bin_theta: float) -> tuple[np.ndarray, int]:
     """(label per particle, number of clusters)."""
+    from pipeline.runtime.kernels import HAVE_NUMBA
+
     n_theta = max(1, int(round(2 * math.pi / bin_theta)))
     cells = _cells(poses, bin_xy, n_theta)
     base = cells.min(axis=0)
     span = cells.max(axis=0) - base + 3  # +3: room for the -1 / +1 neighbours of the extreme cells
     span[2] = n_theta
+    keys = ((cells[:, 0] - base[0] + 1) * span[1] + (cells[:, 1] - base[1] + 1)) * span[2] + cells[:, 2]
+    uniq, inverse = np.unique(keys, return_inverse=True)
+    if HAVE_NUMBA:
+        ulabels, n = _label_sorted_keys(uniq, int(span[1]), int(span[2]))
+    else:  # pragma: no cover - the scipy twin, kept for machines without numba
+        ulabels, n = _label_sorted_keys_scipy(uniq, int(span[1]), int(span[2]))
+    return ulabels[inverse.ravel()], int(n)
 
-    def key(c):
-        return ((c[..., 0] - base[0] + 1) * span[1] + (c[..., 1] - base[1] + 1)) * span[2] + c[..., 2]
 
-    uniq, inverse = np.unique(key(cells), return_inverse=True)
-    # Decode the unique keys back to cells, then look up each cell's 26 neighbours among them.
-    t = uniq % span[2]
-    rest = uniq // span[2]
-    ucells = np.column_stack([rest // span[1] + base[0] - 1, rest % span[1] + base[1] - 1, t])
-    steps = (-1, 0, 1)
-    offsets = np.array([(a, b, c) for a in steps for b in steps for c in steps if (a, b, c) != (0, 0, 0)])
-    nb = ucells[:, None, :] + offsets[None]
-    nb[..., 2] %= n_theta
-    nkeys = key(nb).ravel()
-    pos = np.clip(np.searchsorted(uniq, nkeys), 0, len(uniq) - 1)
-    found = uniq[pos] == nkeys
-    src = np.repeat(np.arange(len(uniq)), len(offsets))[found]
-    graph = coo_matrix((np.ones(len(src)), (src, pos[found])), shape=(len(uniq), len(uniq)))
+def _neighbour_keys(key: int, span1: int, n_theta: int):
+    """The 26 neighbours' keys of a cell key (heading wraps), as a generator of ints."""
+    t = key % n_theta
+    rest = key // n_theta
+    x, y = rest // span1, rest % span1
+    for a in (-1, 0, 1):
+        for b in (-1, 0, 1):
+            for c in (-1, 0, 1):
+                if a == 0 and b == 0 and c == 0:
+                    continue
+                yield ((x + a) * span1 + (y + b)) * n_theta + (t + c) % n_theta
+
+
+def _label_sorted_keys_scipy(uniq: np.ndarray, span1: int, n_theta: int) -> tuple[np.ndarray, int]:
+    src, dst = [], []
+    for k, key in enumerate(uniq):
+        for nk in _neighbour_keys(int(key), span1, n_theta):
+            pos = int(np.searchsorted(uniq, nk))
+            if pos < len(uniq) and uniq[pos] == nk:
+                src.append(k)
+                dst.append(pos)
+    graph = coo_matrix((np.ones(len(src)), (src, dst)), shape=(len(uniq), len(uniq)))
     n, labels = connected_components(graph, directed=False)
-    return labels[inverse.ravel()], int(n)
+    return labels, n
+
+
+try:
+    from numba import njit
+
+    @njit(cache=True, nogil=True)
+    def _label_sorted_keys(uniq, span1, n_theta):  # pragma: no cover - compiled; twin: the scipy path
+        k_total = uniq.shape[0]
+        parent = np.arange(k_total)
+
+        def find(i):
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        for k in range(k_total):
+            key = uniq[k]
+            t = key % n_theta
+            rest = key // n_theta
+            x = rest // span1
+            y = rest % span1
+            for a in range(-1, 2):
+                for b in range(-1, 2):
+                    for c in range(-1, 2):
+                        if a == 0 and b == 0 and c == 0:
+                            continue
+                        nk = ((x + a) * span1 + (y + b)) * n_theta + (t + c) % n_theta
+                        pos = np.searchsorted(uniq, nk)
+                        if pos < k_total and uniq[pos] == nk:
+                            ra, rb = find(k), find(pos)
+                            if ra != rb:
+                                parent[max(ra, rb)] = min(ra, rb)
+        labels = np.empty(k_total, dtype=np.int64)
+        n = 0
+        remap = np.full(k_total, -1, dtype=np.int64)
+        for k in range(k_total):
+            r = find(k)
+            if remap[r] < 0:
+                remap[r] = n
+                n += 1
+            labels[k] = remap[r]
+        return labels, n
+except ImportError:  # pragma: no cover
+    _label_sorted_keys = None
 
 
 def weighted_pose(poses: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -121,6 +121,15 @@ def sample_motion_model_odometry(
     particles = np.asarray(particles, dtype=np.float64)
     rot1, trans, rot2 = odometry_delta(odom_prev, odom_cur, min_trans=min_trans)
     shape = particles.shape[:-1]
+    if np.ndim(rot1) == 0:
+        # One odometry reading for all particles: the noise scales are scalars. Same draws (one (3, N)
+        # call) and the same arithmetic as `sample_odometry_deltas`, without per-particle copies of them.
+        s1, st, s2 = (float(v) for v in motion_noise_std(rot1, trans, rot2, alpha))
+        z = rng.standard_normal((3, *shape))
+        heading = particles[..., 2] + wrap_angle(float(rot1) - s1 * z[0])
+        tr = float(trans) - st * z[1]
+        return np.stack([particles[..., 0] + tr * np.cos(heading), particles[..., 1] + tr * np.sin(heading),
+                         wrap_angle(heading + wrap_angle(float(rot2) - s2 * z[2]))], axis=-1)
     r1, tr, r2 = sample_odometry_deltas(
         np.broadcast_to(rot1, shape), np.broadcast_to(trans, shape), np.broadcast_to(rot2, shape), alpha, rng
     )

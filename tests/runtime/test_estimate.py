@@ -42,3 +42,23 @@ def test_the_heavier_mode_is_the_estimate_not_the_average():
     est = estimate_pose(np.vstack([a, b]), np.r_[np.full(300, 1.0), np.full(200, 2.0)])
     assert est.pose[0] == pytest.approx(12, abs=0.05) and est.clusters == 2
     assert est.cluster_weight == pytest.approx(400 / 700) and est.std_xy < 0.1
+
+
+def test_compiled_labelling_matches_the_scipy_twin():
+    from pipeline.runtime import estimate
+
+    rng = np.random.default_rng(3)
+    poses = np.column_stack([rng.uniform(0, 6, 400), rng.uniform(0, 4, 400), rng.uniform(-math.pi, math.pi, 400)])
+    poses = poses[(poses[:, 0] < 2) | (poses[:, 0] > 4) | (poses[:, 1] < 1)]  # a U shape: one or two blobs
+    n_theta = 36
+    cells = estimate._cells(poses, 0.3, n_theta)
+    base = cells.min(axis=0)
+    span = cells.max(axis=0) - base + 3
+    keys = ((cells[:, 0] - base[0] + 1) * span[1] + (cells[:, 1] - base[1] + 1)) * n_theta + cells[:, 2]
+    uniq = np.unique(keys)
+    fast, n_fast = estimate._label_sorted_keys(uniq, int(span[1]), n_theta)
+    slow, n_slow = estimate._label_sorted_keys_scipy(uniq, int(span[1]), n_theta)
+    assert n_fast == n_slow > 5  # sparse: many small clusters
+    # The same partition, whatever the label numbers.
+    pairs = set(zip(fast.tolist(), slow.tolist(), strict=True))
+    assert len(pairs) == n_fast
