@@ -59,9 +59,19 @@ def change_scene(scene: Scene, seed: int, spec: ChangeSpec = ChangeSpec(), poste
     posters = [o for o in kept if o.cls == "poster" and o.room.startswith("corridor")]
     for obj in rng.permutation(len(posters))[: max(1, len(posters) // 5)] if posters else []:
         src = posters[int(obj)]
-        along = rng.uniform(0.8, 1.6) * rng.choice([-1, 1])
         dx, dy = -math.sin(src.yaw), math.cos(src.yaw)
-        kept.append(replace(src, x=src.x + along * dx, y=src.y + along * dy,
-                            texture=int(rng.integers(0, poster_pictures))))
+        for _ in range(4):  # a few tries; a spot that would cover a door, a window or a poster is skipped
+            along = rng.uniform(0.8, 1.6) * rng.choice([-1, 1])
+            new = replace(src, x=src.x + along * dx, y=src.y + along * dy,
+                          texture=int(rng.integers(0, poster_pictures)))
+            if not any(_overlaps(new, o) for o in kept if o.cls in ("door", "window", "poster", "exit_sign",
+                                                                      "fire_extinguisher")):
+                kept.append(new)
+                break
     objects = [replace(o, instance_id=i + 1) for i, o in enumerate(kept)]
     return replace(scene, name=f"{scene.name}-changed", objects=objects)
+
+
+def _overlaps(a: SceneObject, b: SceneObject, gap: float = 0.1) -> bool:
+    """Whether two wall-mounted things would touch: closer than half their widths plus a gap."""
+    return math.hypot(a.x - b.x, a.y - b.y) < (a.size[0] + b.size[0]) / 2 + gap

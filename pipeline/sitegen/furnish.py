@@ -46,12 +46,27 @@ class _Placer:
         w, d, _ = _SIZES[kind]
         inward = _NORMALS[_opposite(side)]
         off = self.t + d / 2 + 0.01
-        if side in ("north", "south"):
-            y = rect.y1 - off if side == "north" else rect.y0 + off
-            self.add(cls, kind, rect.x0 + along, y, z, inward, room, blocks=blocks, texture=texture)
-        else:
-            x = rect.x1 - off if side == "east" else rect.x0 + off
-            self.add(cls, kind, x, rect.y0 + along, z, inward, room, blocks=blocks, texture=texture)
+        for shift in (0.0, 0.6, -0.6, 1.2, -1.2):  # slide along the wall off doors, windows and fixtures
+            a = along + shift
+            if not w / 2 <= a <= _side_length(rect, side) - w / 2:
+                continue
+            if side in ("north", "south"):
+                x, y = rect.x0 + a, (rect.y1 - off if side == "north" else rect.y0 + off)
+            else:
+                x, y = (rect.x1 - off if side == "east" else rect.x0 + off), rect.y0 + a
+            if kind in _WALL_HUNG and self._covers_fixture(x, y, w):
+                continue
+            self.add(cls, kind, x, y, z, inward, room, blocks=blocks, texture=texture)
+            return
+
+    def _covers_fixture(self, x: float, y: float, w: float, gap: float = 0.1) -> bool:
+        return any(math.hypot(o.x - x, o.y - y) < (o.size[0] + w) / 2 + gap
+                   for o in self.scene.objects if o.kind in _WALL_FIXTURES)
+
+
+# Things hung on walls must not cover each other or a door or window (they would render on top).
+_WALL_HUNG = {"poster", "fire_extinguisher", "exit_sign"}
+_WALL_FIXTURES = {"door", "door_exterior", "window", "poster", "fire_extinguisher", "exit_sign"}
 
 
 def _opposite(side: str) -> str:

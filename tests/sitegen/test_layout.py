@@ -109,6 +109,14 @@ def test_change_moves_furniture_and_swaps_posters_but_keeps_walls():
     posters_after = sorted(o.texture for o in after.objects if o.cls == "poster")
     assert posters_before != posters_after
     assert [o.instance_id for o in after.objects] == list(range(1, len(after.objects) + 1))
+    # Posters (old and hung by the change) cover no door, window or other wall fixture.
+    fixtures = [o for o in after.objects if o.kind in ("door", "door_exterior", "window", "exit_sign",
+                                                         "fire_extinguisher")]
+    for p in (o for o in after.objects if o.cls == "poster"):
+        for f in fixtures:
+            assert math.hypot(p.x - f.x, p.y - f.y) >= (p.size[0] + f.size[0]) / 2, (p, f)
+    old_spots = {(round(o.x, 3), round(o.y, 3)) for o in before.objects if o.cls == "poster"}
+    assert any((round(o.x, 3), round(o.y, 3)) not in old_spots for o in after.objects if o.cls == "poster")
 
 
 def test_bad_preset_names_key(tmp_path):
