@@ -35,6 +35,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.mapping_benchmark import machine_info  # noqa: E402
+from benchmarks.nav2_peer import make_nav2  # noqa: E402
 from pipeline.config import FilterConfig  # noqa: E402
 from pipeline.evaluation.replay import load_run  # noqa: E402
 from pipeline.io.map_yaml import read_map  # noqa: E402
@@ -80,16 +81,9 @@ def ours(lmap, odom, gt, scans, n, beams, model, backend="auto", budget_s=1e9):
 def nav2(occ, odom, gt, scans, n, beams, budget_s):
     import amcl
 
-    cfg = FilterConfig(sensor={"model": "beam"})
-    s, m = cfg.sensor, cfg.motion
-    # The same motion noise as ours (both Thrun's alphas in std form; alpha5 is for omni drives only).
-    loc = amcl.AMCL(n, n, 0.0, 0.0, amcl.MotionParameters(m.alpha1, m.alpha2, m.alpha3, m.alpha4, 0.0),
-                    amcl.LaserParameters(s.z_hit, s.z_short, s.z_max, s.z_rand, s.sigma_hit, s.lambda_short, 0.05,
-                                         beams), "differential")
-    loc.set_map(amcl.create_occupancy_grid_from_list(np.asarray(occ.grid).tolist(), occ.resolution, occ.origin_x,
-                                                     occ.origin_y))
+    loc = make_nav2(occ, FilterConfig(sensor={"model": "beam"}), min_particles=n, max_particles=n, max_beams=beams,
+                    recovery=False)
     loc.set_initial_pose(amcl.Vector3D(*gt[0]), amcl.create_diagonal_covariance(0.01, 0.01, 0.0025))
-    loc.set_laser_pose(amcl.Vector3D(0.0, 0.0, 0.0))
     lists = [amcl.create_laser_scan_from_list([[float(r), float(b)] for r, b in zip(sc.ranges, sc.angles, strict=True)],
                                               RANGE_MAX) for sc in scans]  # converted before timing
     loc.update(lists[0], amcl.Vector3D(*odom[0]))

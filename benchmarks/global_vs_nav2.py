@@ -29,6 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.mapping_benchmark import machine_info  # noqa: E402
+from benchmarks.nav2_peer import make_nav2  # noqa: E402
 from pipeline.config import load_config  # noqa: E402
 from pipeline.evaluation.metrics import first_settled  # noqa: E402
 from pipeline.evaluation.replay import load_run  # noqa: E402
@@ -42,13 +43,8 @@ LOGS = ["intel-corrected", "aces-corrected", "csail-corrected", "fhw-corrected",
 def nav2_replay(occ, lmap, run, fcfg) -> np.ndarray:
     import amcl
 
-    s, m = fcfg.sensor, fcfg.motion
-    loc = amcl.AMCL(fcfg.min_particles, fcfg.max_particles, fcfg.alpha_slow, fcfg.alpha_fast,
-                    amcl.MotionParameters(m.alpha1, m.alpha2, m.alpha3, m.alpha4, 0.0),
-                    amcl.LaserParameters(s.z_hit, s.z_short, s.z_max, s.z_rand, s.sigma_hit, s.lambda_short, 0.05,
-                                         s.max_beams), "differential")
-    loc.set_map(amcl.create_occupancy_grid_from_list(np.asarray(occ.grid).tolist(), occ.resolution, occ.origin_x,
-                                                     occ.origin_y))
+    loc = make_nav2(occ, fcfg, min_particles=fcfg.min_particles, max_particles=fcfg.max_particles,
+                    max_beams=fcfg.sensor.max_beams, recovery=True)
     rows, cols = np.nonzero(lmap.free)
     xs = lmap.origin_x + (cols + 0.5) * lmap.resolution
     ys = lmap.origin_y + (rows + 0.5) * lmap.resolution
@@ -56,7 +52,6 @@ def nav2_replay(occ, lmap, run, fcfg) -> np.ndarray:
     half = ((xs.max() - xs.min()) / 2, (ys.max() - ys.min()) / 2)
     loc.set_initial_pose(amcl.Vector3D(centre[0], centre[1], 0.0),
                          amcl.create_diagonal_covariance(half[0] ** 2, half[1] ** 2, math.pi ** 2))
-    loc.set_laser_pose(amcl.Vector3D(0.0, 0.0, 0.0))
     bearings = run.angle_min + run.angle_increment * np.arange(run.ranges.shape[1])
     errors = np.empty(len(run))
     for i in range(len(run)):
