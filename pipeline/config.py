@@ -177,6 +177,26 @@ class FilterConfig(Strict):
         return self
 
 
+class DetectorConfig(Strict):
+    """`siteloc train-detector`: the 9-class Faster R-CNN (seed 000 sections 3.1.1 and 4.1)."""
+
+    backbone: Literal["vgg16", "efficientnet_lite0"] = "efficientnet_lite0"
+    weights: str | None = Field("imagenet", description="imagenet, a local state-dict file, or null for random")
+    max_side: int | None = Field(320, ge=32, description="images are scaled so their longest side is at most this")
+    min_size: int = Field(240, ge=32, description="Faster R-CNN's internal resize (paper: 600)")
+    max_size: int = Field(320, ge=32, description="Faster R-CNN's internal resize cap (paper: 1000)")
+    anchor_sizes: tuple[int, ...] = Field((32, 64, 128, 256), min_length=1, description="paper: (128, 256, 512)")
+    iterations: int = Field(2000, ge=1)
+    batch_size: int = Field(2, ge=1)
+    lr: float = Field(1e-3, gt=0, description="SGD learning rate (paper: 1e-3 then 1e-4)")
+    lr_drop_at: float = Field(0.7, gt=0, le=1, description="share of the iterations after which lr drops 10x")
+    momentum: float = Field(0.9, ge=0, lt=1)
+    weight_decay: float = Field(5e-4, ge=0)
+    val_fraction: float = Field(0.15, ge=0, lt=1, description="share of the training stops held for validation")
+    checkpoint_every: int = Field(200, ge=1, description="iterations between resumable checkpoints")
+    seed: int = 0
+
+
 class SitelocConfig(Strict):
     """The whole configuration; each stage reads its own section."""
 
@@ -186,6 +206,7 @@ class SitelocConfig(Strict):
     ingest: IngestConfig = IngestConfig()
     ingest_log: IngestLogConfig = IngestLogConfig()
     filter: FilterConfig = FilterConfig()
+    detector: DetectorConfig = DetectorConfig()
 
 
 def format_validation_error(source: str, err: ValidationError, root: type[BaseModel] | None = None) -> str:

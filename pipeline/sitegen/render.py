@@ -18,6 +18,9 @@ Shading (in linear light, sRGB in and out):
 with albedo = srgb_to_linear(texture) * colour, `falloff(d) = window(d) / (1 + (d / LIGHT_FALLOFF_M)^2)` and a smooth
 window that reaches 0 at LIGHT_RANGE_M, so each fragment only loops over the lights of its floor cell. Lighting is
 two-sided (|n . l|) and back faces are drawn because imported meshes have inconsistent winding.
+
+Process note: if torch / torchvision are used in the same process, import them before the first EGL
+context is made; loading triton's LLVM after Mesa's crashes the process (seen with torch 2.14.1).
 """
 
 from __future__ import annotations

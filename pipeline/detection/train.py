@@ -1,0 +1,142 @@
+"""Stage `train-detector`: fine-tune the 9-class Faster R-CNN on an ingested site.
+
+SGD with momentum and weight decay, the learning rate dropping 10x after `lr_drop_at` of the iterations
+(the paper's 1e-3 then 1e-4), batches drawn from the training stops (the ingest's `train` split minus a
+seeded share of stops held for validation), flips and colour jitter. Every `checkpoint_every`
+iterations a checkpoint of tensors and primitives only (model, optimizer, iteration, generator states)
+is written atomically to `<out>.partial/checkpoint.pt`; a rerun resumes from it (`torch.load` with
+weights_only=True). A non-finite loss stops training with an error naming the iteration. The finished
+output directory holds `weights.safetensors`, `config.json` (builder arguments, classes, weights source,
+iterations) and `metrics.json` (loss curve, validation loss, timings).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import SitelocConfig, write_effective_config
+from pipeline.errors import SitelocError
+
+
+class TrainingError(SitelocError):
+    """Training cannot go on (a non-finite loss, no training images)."""
+
+
+def _collate(batch):
+    return [b[0] for b in batch], [{k: v for k, v in b[1].items() if k != "scale"} for b in batch]
+
+
+def _loss(model, images, targets):
+    losses = model(images, targets)
+    return sum(losses.values()), {k: float(v.detach()) for k, v in losses.items()}
+
+
+def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
+                       force: bool = False, progress: bool = True) -> Path:
+    import torch
+    from safetensors.torch import save_file
+
+    from pipeline.detection.builders import build_detector
+    from pipeline.detection.data import DetectionDataset, load_samples, split_by_stop
+    from pipeline.io.atomic import atomic_dir, atomic_file, write_text_atomic
+    from pipeline.progress import progress_bar
+
+    d = cfg.detector
+    out = Path(outputs["out"])
+    if out.exists() and not force:
+        from pipeline.errors import OutputExistsError
+
+        raise OutputExistsError(out)
+    _, splits, classes = load_samples(Path(inputs["data"]))
+    train, val = split_by_stop(splits.get("train", []), d.val_fraction, d.seed)
+    train = [s for s in train if len(s.boxes)]
+    if not train:
+        raise TrainingError(f"{inputs['data']}: no training image has a box")
+    torch.manual_seed(d.seed)
+    rng = np.random.default_rng(d.seed)
+    args = dict(backbone=d.backbone, num_classes=len(classes) + 1, min_size=d.min_size, max_size=d.max_size,
+                anchor_sizes=tuple(d.anchor_sizes))
+    built = build_detector(weights=d.weights, **args)
+    model = built.model
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.SGD(params, lr=d.lr, momentum=d.momentum, weight_decay=d.weight_decay)
+    partial = out.with_name(out.name + ".partial")
+    ckpt_path = partial / "checkpoint.pt"
+    start, history = 0, []
+    if ckpt_path.is_file():
+        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+        model.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        start, history = int(ckpt["iteration"]), [float(v) for v in ckpt["history"]]
+        rng = np.random.default_rng(int(ckpt["rng_seed"]))
+        torch.set_rng_state(ckpt["torch_rng"])
+    data = DetectionDataset(train, max_side=d.max_side, augment=True, seed=int(rng.integers(0, 2**31)))
+    drop_at = int(d.lr_drop_at * d.iterations)
+    model.train()
+    t0 = time.perf_counter()
+    bar = progress_bar(total=d.iterations, desc="training", unit="it", enabled=progress)
+    bar.update(start)
+    for it in range(start, d.iterations):
+        for g in opt.param_groups:
+            g["lr"] = d.lr * (0.1 if it >= drop_at else 1.0)
+        batch = [data[int(i)] for i in rng.integers(0, len(data), size=d.batch_size)]
+        loss, parts = _loss(model, *_collate(batch))
+        if not math.isfinite(loss.item()):
+            raise TrainingError(f"non-finite loss at iteration {it}: {parts}; lower detector.lr or check the boxes")
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        history.append(loss.item())
+        bar.update(1)
+        bar.set_postfix(loss=f"{history[-1]:.3f}")
+        if (it + 1) % d.checkpoint_every == 0 and it + 1 < d.iterations:
+            partial.mkdir(parents=True, exist_ok=True)
+            seed_next = int(rng.integers(0, 2**31))
+            rng = np.random.default_rng(seed_next)
+            with atomic_file(ckpt_path, "wb") as fh:
+                torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
+                            "history": history, "rng_seed": seed_next, "torch_rng": torch.get_rng_state()}, fh)
+    bar.close()
+    train_s = time.perf_counter() - t0
+    model.eval()
+    val_loss = _validation_loss(model, val, d.max_side)
+    with atomic_dir(out, force=force) as tmp:
+        save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(tmp / "weights.safetensors"))
+        write_text_atomic(tmp / "config.json", json.dumps({
+            "builder": args, "classes": classes, "weights_source": built.weights_source,
+            "max_side": d.max_side, "iterations": d.iterations, "frozen": built.frozen}, indent=2) + "\n")
+        write_text_atomic(tmp / "metrics.json", json.dumps({
+            "train_images": len(train), "val_images": len(val), "loss_first": history[0], "loss_last": history[-1],
+            "loss_last_50_mean": float(np.mean(history[-50:])), "val_loss": val_loss,
+            "iterations_per_s": round((d.iterations - start) / max(train_s, 1e-9), 3), "loss_history": history},
+            indent=2) + "\n")
+        write_effective_config(cfg, tmp, stage="train-detector", inputs=inputs)
+    if ckpt_path.exists():
+        ckpt_path.unlink()
+        partial.rmdir()
+    return out
+
+
+def _validation_loss(model, samples, max_side) -> float | None:
+    """Mean training loss on the validation stops (the detector in train mode, no gradients, no augmentation)."""
+    import torch
+
+    from pipeline.detection.data import DetectionDataset
+
+    samples = [s for s in samples if len(s.boxes)]
+    if not samples:
+        return None
+    data = DetectionDataset(samples, max_side=max_side)
+    model.train()
+    total = []
+    with torch.no_grad():
+        for i in range(0, len(data), 4):
+            loss, _ = _loss(model, *_collate([data[j] for j in range(i, min(i + 4, len(data)))]))
+            total.append(float(loss))
+    model.eval()
+    return float(np.mean(total))
