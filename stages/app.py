@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from stages import config_cmd, demo, ingest, ingest_log, localize, synth
+from stages import config_cmd, demo, ingest, ingest_log, localize, synth, train_detector
 from stages.common import help_text
 
 app = typer.Typer(
@@ -24,6 +24,7 @@ app = typer.Typer(
 app.command("ingest", help=help_text(ingest.HELP))(ingest.ingest)
 app.command("ingest-log", help=help_text(ingest_log.HELP))(ingest_log.ingest_log)
 app.command("synth", help=help_text(synth.HELP))(synth.synth)
+app.command("train-detector", help=help_text(train_detector.HELP))(train_detector.train_detector)
 app.command("localize", help=help_text(localize.HELP))(localize.localize)
 app.command("demo", help=help_text(demo.HELP))(demo.demo)
 app.add_typer(config_cmd.app, name="config")

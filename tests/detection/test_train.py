@@ -82,3 +82,20 @@ def test_a_pickled_checkpoint_is_refused_and_a_nan_loss_stops(site, tmp_path, mo
     monkeypatch.setattr(T, "_loss", lambda *a: (torch.tensor(float("nan"), requires_grad=True), {"loss": float("nan")}))
     with pytest.raises(TrainingError, match="non-finite loss at iteration 0"):
         run_train_detector(cfg, inputs={"data": site}, outputs={"out": tmp_path / "det2"}, progress=False)
+
+
+def test_cli_trains_and_refuses_what_is_not_a_site(site, tmp_path):
+    from typer.testing import CliRunner
+
+    from stages.app import app
+
+    runner = CliRunner()
+    args = ["train-detector", str(site), "--out", str(tmp_path / "m"), "--config", "ci"]
+    for item in [*SMALL, "detector.iterations=4"]:
+        args += ["--set", item]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert "trained efficientnet_lite0 (none (random init))" in res.output
+    assert (tmp_path / "m" / "weights.safetensors").is_file()
+    res = runner.invoke(app, ["train-detector", str(tmp_path), "--out", str(tmp_path / "n"), "--config", "ci"])
+    assert res.exit_code == 1 and "images.parquet" in res.output and "Traceback" not in res.output
