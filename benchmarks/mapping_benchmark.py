@@ -10,42 +10,19 @@ Only mapping is timed (no odometry, Parquet or preview), single process, as `sit
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 import time
 from pathlib import Path
-
-import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from pipeline.config import MappingConfig  # noqa: E402
 from pipeline.io.carmen import read_carmen  # noqa: E402
+from pipeline.machine import machine_info  # noqa: E402,F401  (re-exported for the other benchmarks)
 from pipeline.mapping.occupancy import build_occupancy_map, endpoint_occupied_share  # noqa: E402
 
 LOGS = ["intel", "aces", "csail", "fhw", "freiburg-079"]
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def machine_info() -> list[str]:
-    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "?"
-    return [
-        f"platform: {platform.platform()}",
-        f"cpu: {cpu_model()}",
-        f"cpu count: {os.cpu_count()} (usable: {usable})",
-        f"python: {platform.python_version()}  numpy: {np.__version__}",
-    ]
 
 
 def main() -> None:

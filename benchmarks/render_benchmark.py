@@ -23,19 +23,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from pipeline.machine import cpu_model  # noqa: E402
 from pipeline.sitegen.render import Intrinsics, Lighting, Renderer, RenderMesh  # noqa: E402
 
 FLOOR_X, FLOOR_Y, HEIGHT = 40.0, 30.0, 2.7
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def checker(seed: int, size: int = 256, squares: int = 8) -> np.ndarray:

@@ -16,6 +16,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from pipeline.runtime.sampling import heading_bins, pose_cells
+
 
 @dataclass(frozen=True)
 class PoseEstimate:
@@ -30,19 +32,12 @@ class PoseEstimate:
         return float(math.sqrt(max(np.linalg.eigvalsh(self.covariance[:2, :2]).max(), 0.0)))
 
 
-def _cells(poses: np.ndarray, bin_xy: float, n_theta: int) -> np.ndarray:
-    ix = np.floor(poses[:, 0] / bin_xy).astype(np.int64)
-    iy = np.floor(poses[:, 1] / bin_xy).astype(np.int64)
-    it = np.floor((poses[:, 2] + math.pi) / (2 * math.pi) * n_theta).astype(np.int64) % n_theta
-    return np.column_stack([ix, iy, it])
-
-
 def cluster_labels(poses: np.ndarray, bin_xy: float, bin_theta: float) -> tuple[np.ndarray, int]:
     """(label per particle, number of clusters)."""
     from pipeline.runtime.kernels import HAVE_NUMBA
 
-    n_theta = max(1, int(round(2 * math.pi / bin_theta)))
-    cells = _cells(poses, bin_xy, n_theta)
+    n_theta = heading_bins(bin_theta)
+    cells = pose_cells(poses, bin_xy, n_theta)
     base = cells.min(axis=0)
     span = cells.max(axis=0) - base + 3  # +3: room for the -1 / +1 neighbours of the extreme cells
     span[2] = n_theta

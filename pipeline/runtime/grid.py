@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from pipeline.io.map_yaml import OCCUPIED, OccupancyMap
+from pipeline.io.map_yaml import FREE, OCCUPIED, OccupancyMap
 
 
 @dataclass(frozen=True)
@@ -30,6 +30,7 @@ class LaserMap:
     max_distance: float
     distance_padded: np.ndarray  # (H + 2, W + 2) float32, m, capped at max_distance
     free_cells: np.ndarray  # (K,) int64 flat indices of free cells (unpadded grid)
+    source: OccupancyMap  # the map it was built from: its frame arithmetic (world_to_cell, value_at) is reused
 
     @classmethod
     def from_occupancy(cls, occ_map: OccupancyMap, max_distance: float = 2.0) -> LaserMap:
@@ -45,7 +46,7 @@ class LaserMap:
         np.minimum(dist, np.float32(max_distance), out=dist)
         padded = np.pad(dist, 1, constant_values=np.float32(max_distance))
         return cls(occupied, free, float(occ_map.resolution), float(occ_map.origin_x), float(occ_map.origin_y),
-                   float(max_distance), padded, np.flatnonzero(free))
+                   float(max_distance), padded, np.flatnonzero(free), occ_map)
 
     @property
     def height(self) -> int:
@@ -69,16 +70,10 @@ class LaserMap:
 
     def cells(self, x, y) -> tuple[np.ndarray, np.ndarray]:
         """(row, col) of map-frame points, possibly outside the grid."""
-        col = np.floor((np.asarray(x, dtype=np.float64) - self.origin_x) / self.resolution).astype(np.int64)
-        row = np.floor((np.asarray(y, dtype=np.float64) - self.origin_y) / self.resolution).astype(np.int64)
-        return row, col
+        return self.source.world_to_cell(x, y)
 
     def is_free(self, x, y) -> np.ndarray:
-        row, col = self.cells(x, y)
-        inside = (row >= 0) & (row < self.height) & (col >= 0) & (col < self.width)
-        out = np.zeros(np.shape(row), dtype=bool)
-        out[inside] = self.free[row[inside], col[inside]]
-        return out
+        return self.source.value_at(x, y) == FREE
 
     def distance_at(self, x, y) -> np.ndarray:
         """Distance field at map-frame points (max_distance off the map)."""

@@ -33,14 +33,25 @@ def kld_count(k: np.ndarray | int, err: float, delta: float) -> np.ndarray:
     return np.where(k <= 1, 0.0, np.ceil(n))
 
 
-def pose_bins(poses: np.ndarray, bin_xy: float, bin_theta: float) -> np.ndarray:
-    """One int64 key per pose for its (x, y, heading) histogram bin; heading bins wrap around the circle."""
-    n_theta = max(1, int(round(2.0 * math.pi / bin_theta)))
+def heading_bins(bin_theta: float) -> int:
+    """How many heading bins of about `bin_theta` radians make the circle."""
+    return max(1, int(round(2.0 * math.pi / bin_theta)))
+
+
+def pose_cells(poses: np.ndarray, bin_xy: float, n_theta: int) -> np.ndarray:
+    """(N, 3) int64 histogram cells (x, y, heading) of poses; heading cells wrap around the circle."""
     ix = np.floor(poses[:, 0] / bin_xy).astype(np.int64)
     iy = np.floor(poses[:, 1] / bin_xy).astype(np.int64)
     it = np.floor((poses[:, 2] + math.pi) / (2.0 * math.pi) * n_theta).astype(np.int64) % n_theta
+    return np.column_stack([ix, iy, it])
+
+
+def pose_bins(poses: np.ndarray, bin_xy: float, bin_theta: float) -> np.ndarray:
+    """One int64 key per pose for its (x, y, heading) histogram bin; heading bins wrap around the circle."""
+    n_theta = heading_bins(bin_theta)
+    c = pose_cells(poses, bin_xy, n_theta)
     # Offsets keep keys non-negative for any map within +-1e6 bins of the origin.
-    return ((ix + 1_000_000) * 2_000_001 + (iy + 1_000_000)) * n_theta + it
+    return ((c[:, 0] + 1_000_000) * 2_000_001 + (c[:, 1] + 1_000_000)) * n_theta + c[:, 2]
 
 
 def low_variance_indices(weights: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:

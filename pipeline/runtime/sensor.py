@@ -22,6 +22,7 @@ invalid and skipped, readings below `range_min` are skipped. Beams are subsample
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -150,7 +151,6 @@ class BeamModel:
                  base_from_laser: tuple[float, float, float] = (0.0, 0.0, 0.0)):
         self.map, self.cfg, self.range_max = lmap, cfg, float(range_max)
         self.base_from_laser = tuple(base_from_laser)
-        self.safe = kernels.safe_steps(lmap.occupied)
         self.table = range_table(lmap, cfg.table_angles, range_max) if cfg.ray_cast == "table" else None
         self.inv_short = kernels.short_normalisers(self.table[2], cfg.lambda_short) if self.table else None
         # Best case: a hit exactly at the expected range, short-reading density at that range ignored.
@@ -165,6 +165,11 @@ class BeamModel:
         r = np.where(np.isposinf(r), self.range_max, r)
         ok = np.isfinite(r) & (r >= self.cfg.range_min)
         return np.minimum(r[ok], self.range_max), a[ok]
+
+    @functools.cached_property
+    def safe(self) -> np.ndarray:
+        """Safe steps of the exact caster; only `ray_cast: march` (and `expected`) need them."""
+        return kernels.safe_steps(self.map.occupied)
 
     def expected(self, particles: np.ndarray, angles: np.ndarray) -> np.ndarray:
         poses = laser_poses(particles, self.base_from_laser)

@@ -18,7 +18,6 @@ procedural stand-ins and warns.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import shutil
@@ -33,6 +32,7 @@ from pathlib import Path
 
 from pipeline.io.atomic import atomic_dir, write_text_atomic
 from pipeline.sitegen import assets
+from pipeline.sitegen.asset_cache import sha256_file
 from pipeline.sitegen.asset_types import CC0, CC_BY, CC_BY_US, AssetLibrary
 
 JAR_IN_DEB = "usr/share/sweethome3d/sweethome3d.jar"
@@ -122,18 +122,10 @@ def extract_jar(jar: Path, dest: Path, provenance: dict) -> int:
         copyright_file = provenance.pop("copyright_file", None)
         if copyright_file:
             shutil.copyfile(copyright_file, tmp / "debian-copyright")
-        source = {"format": SOURCE_FORMAT, "jar_sha256": assets_sha256(jar), "members": len(members),
+        source = {"format": SOURCE_FORMAT, "jar_sha256": sha256_file(jar), "members": len(members),
                   "license": "eTeks' models and textures: GPL-2+ or CC-BY-3.0 (used under CC-BY-3.0)", **provenance}
         (tmp / "SOURCE.json").write_text(json.dumps(source, indent=1, sort_keys=True) + "\n")
     return len(members)
-
-
-def assets_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _run(cmd: list[str], cwd: Path | None = None) -> subprocess.CompletedProcess:
@@ -166,7 +158,7 @@ def download_jar(dest: Path, log: Callable[[str], None]) -> str | None:
         version = _run(["dpkg-deb", "-f", str(deb), "Version"]).stdout.strip()
         copyright_file = unpacked / COPYRIGHT_IN_DEB
         count = extract_jar(jar, dest, {
-            "package": "sweethome3d", "version": version, "deb": deb.name, "deb_sha256": assets_sha256(deb),
+            "package": "sweethome3d", "version": version, "deb": deb.name, "deb_sha256": sha256_file(deb),
             "copyright_file": copyright_file if copyright_file.is_file() else None,
         })
         log(f"extracted {count} files of {deb.name} (version {version}) into {dest}")

@@ -22,9 +22,9 @@ import math
 from collections.abc import Iterable, Sequence
 
 import numpy as np
-from scipy.ndimage import distance_transform_edt
 
 from pipeline.io.map_yaml import FREE, OCCUPIED, UNKNOWN, OccupancyMap
+from pipeline.runtime.kernels import safe_steps
 from pipeline.sitegen.scene import Rect, Scene, Wall
 
 #: Border around the building's outer wall rectangle, so the outer walls' outside halves fit in the grid.
@@ -274,9 +274,8 @@ class LaserScanner:
         self.height, self.width = world.grid.shape
         occupied = world.occupied
         self._occupied = occupied.ravel()
-        # Safe step in cells: distance between cell centres minus the worst offset of a point in its cell
-        # from the centre plus the occupied square's half-diagonal (sqrt(2) cells together).
-        self._safe = (distance_transform_edt(~occupied) - math.sqrt(2.0)).ravel() if occupied.any() else None
+        # Safe step in cells, the runtime ray caster's definition (see `kernels.safe_steps`).
+        self._safe = safe_steps(occupied).ravel() if occupied.any() else None
 
     def cast(self, map_from_laser: np.ndarray, rng: np.random.Generator | None = None, discs=None, noisy=True):
         """Ranges float32 (beams,) from one pose (x, y, theta); `discs` (K, 3) = (x, y, r) moving people."""

@@ -21,25 +21,11 @@ import yaml
 from pipeline import __version__
 from pipeline.io.atomic import atomic_dir, write_text_atomic
 from pipeline.io.map_yaml import write_map
+from pipeline.machine import machine_summary
 from pipeline.sitegen.presets import SitePreset
 
 JPEG_QUALITY = 92
 TIMING_FILE = "synth_timing.json"  # the one output that is not reproducible byte for byte
-
-
-def machine_summary() -> str:
-    import os
-    import platform
-
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {len(os.sched_getaffinity(0))} usable cores, {platform.system()}"
 
 
 def intrinsics_of(preset: SitePreset):
@@ -199,12 +185,12 @@ def _write_runs(tmp: Path, preset, scene, occ_map, stops, renderer, rng, seed, c
                      steps_per_run=r.steps_per_run, step=r.step_m, kidnaps_per_query_run=r.kidnaps_per_query_run,
                      seed=seed, noise=r.odometry_noise)
     report = {}
+    person_room = reachable_mask(scene, occ_map, clearance=0.35)  # where people can walk: the same every run
     for k, run in enumerate(progress_bar(runs, desc="runs", unit="run", enabled=progress)):
         run_seed = seed * 1000 + k
         # Unmapped obstacles: chairs pushed away from where the map has them, people walking past.
         moved, removed = displace_furniture(scene, occ_map, lz.moved_chairs_share, run_seed, keep_clear=run.gt[:, :2])
         world = laser_world_grid(scene, preset.map_resolution, extra_rects=moved, removed_ids=removed)
-        person_room = reachable_mask(scene, occ_map, clearance=0.35)
         people = walking_people(person_room, occ_map, lz.people, len(run.gt), run_seed, robot_xy=run.gt[:, :2])
         scanner = LaserScanner(world, beams=lz.beams, fov_deg=lz.fov_deg, range_max=lz.range_max,
                                noise_sigma=lz.noise_sigma, dropout=lz.dropout, seed=run_seed)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from pipeline.runtime.estimate import cluster_labels, estimate_pose, weighted_pose
+from pipeline.runtime.sampling import pose_cells
 
 
 def test_circular_mean_and_wrapped_covariance():
@@ -51,7 +52,7 @@ def test_compiled_labelling_matches_the_scipy_twin():
     poses = np.column_stack([rng.uniform(0, 6, 400), rng.uniform(0, 4, 400), rng.uniform(-math.pi, math.pi, 400)])
     poses = poses[(poses[:, 0] < 2) | (poses[:, 0] > 4) | (poses[:, 1] < 1)]  # a U shape: one or two blobs
     n_theta = 36
-    cells = estimate._cells(poses, 0.3, n_theta)
+    cells = pose_cells(poses, 0.3, n_theta)
     base = cells.min(axis=0)
     span = cells.max(axis=0) - base + 3
     keys = ((cells[:, 0] - base[0] + 1) * span[1] + (cells[:, 1] - base[1] + 1)) * n_theta + cells[:, 2]

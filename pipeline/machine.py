@@ -1,0 +1,38 @@
+"""What machine a figure was measured on: printed by benchmarks/ and recorded beside timed outputs."""
+
+from __future__ import annotations
+
+import os
+import platform
+from pathlib import Path
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def usable_cores() -> int | str:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "?"
+
+
+def machine_info() -> list[str]:
+    """Lines for a benchmark's header: platform, CPU, cores, Python and numpy versions."""
+    import numpy as np
+
+    return [
+        f"platform: {platform.platform()}",
+        f"cpu: {cpu_model()}",
+        f"cpu count: {os.cpu_count()} (usable: {usable_cores()})",
+        f"python: {platform.python_version()}  numpy: {np.__version__}",
+    ]
+
+
+def machine_summary() -> str:
+    """One line: CPU, usable cores, OS."""
+    return f"{cpu_model()}, {usable_cores()} usable cores, {platform.system()}"
