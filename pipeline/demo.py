@@ -65,12 +65,6 @@ def run_demo(
     data = Path(outputs["data"])
     steps: list[DemoStep] = []
 
-    # Later steps of this process train with torchvision; it must be loaded before the renderer's EGL
-    # context (Mesa's LLVM and triton's clash the other way round: a segfault).
-    try:
-        import torchvision.ops  # noqa: F401
-    except ImportError:
-        pass
     preset = load_site_preset(cfg.synth.site, cfg.synth.preset_overrides)
     site_dir = data / "reference" / "site"  # where dvc.yaml's synth stage writes it too
     reused = _complete(site_dir, "synth_report.json") and not force and _same_synth(site_dir, preset, cfg.synth.seed)

@@ -38,8 +38,6 @@ def train_detector(
     with cli_errors(verbose):
         import json
 
-        import torchvision.ops  # noqa: F401  (before anything that could open an EGL context)
-
         from pipeline.detection.train import run_train_detector
 
         cfg = load(config, set_)

@@ -19,8 +19,8 @@ with albedo = srgb_to_linear(texture) * colour, `falloff(d) = window(d) / (1 + (
 window that reaches 0 at LIGHT_RANGE_M, so each fragment only loops over the lights of its floor cell. Lighting is
 two-sided (|n . l|) and back faces are drawn because imported meshes have inconsistent winding.
 
-Process note: if torch / torchvision are used in the same process, import them before the first EGL
-context is made; loading triton's LLVM after Mesa's crashes the process (seen with torch 2.14.1).
+Process note: loading triton's LLVM (through torchvision) after Mesa's crashes the process (torch 2.14.1),
+so `_create_context` loads torchvision, when installed, before the first EGL context.
 """
 
 from __future__ import annotations
@@ -677,8 +677,18 @@ class Renderer:
         return self.ctx
 
 
+def _load_torchvision_first() -> None:
+    """torchvision pulls in triton, whose LLVM segfaults the process when Mesa's (llvmpipe) is already loaded;
+    the other order is fine. Every context is made here, so loading torchvision first here covers every caller."""
+    import importlib.util
+
+    if importlib.util.find_spec("torchvision") is not None:
+        import torchvision.ops  # noqa: F401
+
+
 def _create_context() -> Any:
     """A standalone EGL context with OpenGL 3.3 core, or a RenderError saying what to install."""
+    _load_torchvision_first()
     try:
         import moderngl
     except ImportError as exc:  # pragma: no cover - moderngl is a declared dependency
