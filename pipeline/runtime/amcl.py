@@ -68,22 +68,19 @@ class AdaptiveMCL:
         self.rng = np.random.default_rng(cfg.seed)
         self.alpha = noise_alphas(cfg.motion)
         self.bin_theta = math.radians(cfg.kld.bin_theta_deg)
-        self.particles = lmap.sample_free(cfg.max_particles, self.rng)
-        self.log_w = np.full(len(self.particles), -math.log(len(self.particles)))
-        self.state = FilterState.RELOCALISING
-        self.w_slow = self.w_fast = 0.0
         self._odom: np.ndarray | None = None  # odometry at the last applied update
-        self._force = True
-        self._low_updates = 0
-        self._good_updates = 0
         self._best = 1.0
-        self._estimate = estimate_pose(self.particles, self.weights, cfg.kld.bin_xy, self.bin_theta)
+        self._reset(lmap.sample_free(cfg.max_particles, self.rng), FilterState.RELOCALISING)
 
     # ------------------------------------------------------------------------------------ initialisation
 
-    def _reset(self, particles: np.ndarray, state: FilterState) -> None:
+    def _set_particles(self, particles: np.ndarray) -> None:
+        """A new particle set with equal weights."""
         self.particles = particles
         self.log_w = np.full(len(particles), -math.log(len(particles)))
+
+    def _reset(self, particles: np.ndarray, state: FilterState) -> None:
+        self._set_particles(particles)
         self.state = state
         self.w_slow = self.w_fast = 0.0
         self._low_updates = 0
@@ -192,19 +189,18 @@ class AdaptiveMCL:
         low = self._best < c.kidnap.min_likelihood or (self.w_slow > 0 and self.w_fast / self.w_slow
                                                          < c.kidnap.fast_slow_ratio)
         self._low_updates = self._low_updates + 1 if low else 0
-        self._resample(scan, res.log_likelihood)
+        self._resample(scan)
 
-    def _resample(self, scan: Scan, log_lik: np.ndarray) -> None:
+    def _resample(self, scan: Scan) -> None:
         c = self.cfg
         w = self.weights
         if c.method == "mcl":
-            self.particles = self.particles[low_variance_indices(w, c.max_particles, self.rng)]
+            self._set_particles(self.particles[low_variance_indices(w, c.max_particles, self.rng)])
         else:
-            self.particles = kld_resample(self.particles, w, min_n=c.min_particles, max_n=c.max_particles,
-                                          err=c.kld.err, delta=c.kld.delta, bin_xy=c.kld.bin_xy,
-                                          bin_theta=self.bin_theta, rng=self.rng)
+            self._set_particles(kld_resample(self.particles, w, min_n=c.min_particles, max_n=c.max_particles,
+                                             err=c.kld.err, delta=c.kld.delta, bin_xy=c.kld.bin_xy,
+                                             bin_theta=self.bin_theta, rng=self.rng))
         n = len(self.particles)
-        self.log_w = np.full(n, -math.log(n))
         if c.method == "amcl" and self.w_slow > 0:
             p_random = max(0.0, 1.0 - self.w_fast / self.w_slow)
             swap = self.rng.random(n) < p_random
@@ -245,8 +241,7 @@ class AdaptiveMCL:
             self._good_updates = 0
             self._low_updates = 0
             if k.reinit_uniform:
-                self.particles = self.map.sample_free(self.cfg.max_particles, self.rng)
-                self.log_w = np.full(len(self.particles), -math.log(len(self.particles)))
+                self._set_particles(self.map.sample_free(self.cfg.max_particles, self.rng))
                 self._force = True
             return
         if self.state != FilterState.TRACKING:

@@ -142,25 +142,6 @@ def cast_rays(poses: np.ndarray, angles: np.ndarray, occupied: np.ndarray, safe:
     return out
 
 
-def cast_rays_brute(poses: np.ndarray, angles: np.ndarray, occupied: np.ndarray, resolution: float,
-                    origin: tuple[float, float], range_max: float, step_cells: float = 0.01) -> np.ndarray:
-    """Reference twin for tests: march every ray in tiny steps (slow, simple, independent)."""
-    t = np.arange(0.0, range_max / resolution, step_cells)
-    out = np.full((len(poses), len(angles)), float(range_max))
-    h, w = occupied.shape
-    for i, (x, y, th) in enumerate(np.asarray(poses, dtype=np.float64)):
-        u0, v0 = (x - origin[0]) / resolution, (y - origin[1]) / resolution
-        for b, a in enumerate(angles):
-            col = np.floor(u0 + t * math.cos(th + a)).astype(np.int64)
-            row = np.floor(v0 + t * math.sin(th + a)).astype(np.int64)
-            outside = (row < 0) | (row >= h) | (col < 0) | (col >= w)
-            stop = np.argmax(outside) if outside.any() else len(t)
-            hits = np.nonzero(occupied[row[:stop], col[:stop]])[0]
-            if len(hits):
-                out[i, b] = t[hits[0]] * resolution
-    return out
-
-
 # ------------------------------------------------------------------------------- precomputed range table
 
 
