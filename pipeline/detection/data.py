@@ -65,6 +65,23 @@ def split_by_stop(samples: list[Sample], val_fraction: float, seed: int) -> tupl
     return [s for s in samples if s.stop_id not in val_stops], [s for s in samples if s.stop_id in val_stops]
 
 
+def repeat_factors(samples: list[Sample], threshold: float) -> np.ndarray:
+    """Repeat-factor sampling weights (Gupta et al., LVIS, 2019): rare classes are drawn more often.
+
+    With f_c the share of images holding class c, an image's factor is max over its classes of
+    max(1, sqrt(threshold / f_c)); 0 turns it off (every image 1).
+    """
+    factors = np.ones(len(samples))
+    if threshold <= 0 or not samples:
+        return factors
+    classes = sorted({int(c) for s in samples for c in s.labels})
+    share = {c: np.mean([c in set(s.labels.tolist()) for s in samples]) for c in classes}
+    for i, s in enumerate(samples):
+        for c in set(s.labels.tolist()):
+            factors[i] = max(factors[i], np.sqrt(threshold / share[int(c)]))
+    return factors
+
+
 def scale_for(width: int, height: int, max_side: int | None) -> float:
     return 1.0 if not max_side else min(1.0, max_side / max(width, height))
 

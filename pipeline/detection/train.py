@@ -1,7 +1,9 @@
 """Stage `train-detector`: fine-tune the 9-class Faster R-CNN on an ingested site.
 
-SGD with momentum and weight decay, the learning rate dropping 10x after `lr_drop_at` of the iterations
-(the paper's 1e-3 then 1e-4), batches drawn from the training stops (the ingest's `train` split minus a
+SGD with momentum and weight decay, the learning rate warming up linearly, then dropping 10x after
+`lr_drop_at` of the iterations (the paper's 1e-3 then 1e-4); images drawn with repeat-factor sampling
+so rare classes are seen more often; on a GPU with float16 autocast and gradient scaling unless `amp`
+is off; batches drawn from the training stops (the ingest's `train` split minus a
 seeded share of stops held for validation), flips and colour jitter. Every `checkpoint_every`
 iterations a checkpoint of tensors and primitives only (model, optimizer, iteration, generator states)
 is written atomically to `<out>.partial/checkpoint.pt`; a rerun resumes from it (`torch.load` with
@@ -42,7 +44,8 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     from safetensors.torch import save_file
 
     from pipeline.detection.builders import build_detector
-    from pipeline.detection.data import DetectionDataset, load_samples, split_by_stop
+    from pipeline.detection.data import DetectionDataset, load_samples, repeat_factors, split_by_stop
+    from pipeline.detection.inference import pick_device
     from pipeline.io.atomic import atomic_dir, atomic_file, write_text_atomic
     from pipeline.progress import progress_bar
 
@@ -60,11 +63,15 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     torch.manual_seed(d.seed)
     rng = np.random.default_rng(d.seed)
     args = dict(backbone=d.backbone, num_classes=len(classes) + 1, min_size=d.min_size, max_size=d.max_size,
-                anchor_sizes=tuple(d.anchor_sizes))
+                anchor_sizes=tuple(d.anchor_sizes), rpn_post_nms_top_n_test=d.rpn_post_nms_top_n_test,
+                box_nms_thresh=d.box_nms_thresh,
+                frozen_batch_norm=d.weights is not None)
     built = build_detector(weights=d.weights, **args)
-    model = built.model
-    params = [p for p in model.parameters() if p.requires_grad]
-    opt = torch.optim.SGD(params, lr=d.lr, momentum=d.momentum, weight_decay=d.weight_decay)
+    device = pick_device(d.device)
+    amp = d.amp and device.type == "cuda"
+    model = built.model.to(device)
+    opt = torch.optim.SGD(param_groups(model, d), lr=d.lr, momentum=d.momentum, weight_decay=d.weight_decay)
+    scaler = torch.amp.GradScaler("cuda", enabled=amp)
     partial = out.with_name(out.name + ".partial")
     ckpt_path = partial / "checkpoint.pt"
     start, history = 0, []
@@ -72,44 +79,55 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
         ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=True)
         model.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
+        if amp and ckpt.get("scaler"):
+            scaler.load_state_dict(ckpt["scaler"])
         start, history = int(ckpt["iteration"]), [float(v) for v in ckpt["history"]]
         rng = np.random.default_rng(int(ckpt["rng_seed"]))
         torch.set_rng_state(ckpt["torch_rng"])
     data = DetectionDataset(train, max_side=d.max_side, augment=True, seed=int(rng.integers(0, 2**31)))
-    drop_at = int(d.lr_drop_at * d.iterations)
+    draw = repeat_factors(train, d.repeat_factor_threshold)
+    draw /= draw.sum()
     model.train()
     t0 = time.perf_counter()
-    bar = progress_bar(total=d.iterations, desc="training", unit="it", enabled=progress)
+    bar = progress_bar(total=d.iterations, desc=f"training ({device.type})", unit="it", enabled=progress)
     bar.update(start)
     for it in range(start, d.iterations):
         for g in opt.param_groups:
-            g["lr"] = d.lr * (0.1 if it >= drop_at else 1.0)
-        batch = [data[int(i)] for i in rng.integers(0, len(data), size=d.batch_size)]
-        loss, parts = _loss(model, *_collate(batch))
+            g["lr"] = learning_rate(it, d) * g["lr_factor"]
+        images, targets = _collate([data[int(i)] for i in rng.choice(len(data), size=d.batch_size, p=draw)])
+        images = [im.to(device, non_blocking=True) for im in images]
+        targets = [{k: v.to(device) for k, v in t.items()} for t in targets]
+        with torch.autocast(device_type=device.type, dtype=torch.float16, enabled=amp):
+            loss, parts = _loss(model, images, targets)
         if not math.isfinite(loss.item()):
             raise TrainingError(f"non-finite loss at iteration {it}: {parts}; lower detector.lr or check the boxes")
         opt.zero_grad()
-        loss.backward()
-        opt.step()
+        scaler.scale(loss).backward()
+        scaler.step(opt)
+        scaler.update()
         history.append(loss.item())
         bar.update(1)
-        bar.set_postfix(loss=f"{history[-1]:.3f}")
+        bar.set_postfix(loss=f"{history[-1]:.3f}", refresh=False)
         if (it + 1) % d.checkpoint_every == 0 and it + 1 < d.iterations:
             partial.mkdir(parents=True, exist_ok=True)
             seed_next = int(rng.integers(0, 2**31))
             rng = np.random.default_rng(seed_next)
             with atomic_file(ckpt_path, "wb") as fh:
                 torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
-                            "history": history, "rng_seed": seed_next, "torch_rng": torch.get_rng_state()}, fh)
+                            "history": history, "rng_seed": seed_next, "torch_rng": torch.get_rng_state(),
+                            "scaler": scaler.state_dict() if amp else {}}, fh)
     bar.close()
     train_s = time.perf_counter() - t0
     model.eval()
-    val_loss = _validation_loss(model, val, d.max_side)
+    val_loss = _validation_loss(model, val, d.max_side, device)
     with atomic_dir(out, force=force) as tmp:
-        save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(tmp / "weights.safetensors"))
+        save_file({k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
+                  str(tmp / "weights.safetensors"))
         write_text_atomic(tmp / "config.json", json.dumps({
             "builder": args, "classes": classes, "weights_source": built.weights_source,
-            "max_side": d.max_side, "iterations": d.iterations, "frozen": built.frozen}, indent=2) + "\n")
+            "max_side": d.max_side, "iterations": d.iterations, "frozen": built.frozen,
+            "device": str(device), "mixed_precision": amp,
+            "val_stops": sorted({s.stop_id for s in val})}, indent=2) + "\n")
         write_text_atomic(tmp / "metrics.json", json.dumps({
             "train_images": len(train), "val_images": len(val), "loss_first": history[0], "loss_last": history[-1],
             "loss_last_50_mean": float(np.mean(history[-50:])), "val_loss": val_loss,
@@ -122,7 +140,23 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     return out
 
 
-def _validation_loss(model, samples, max_side) -> float | None:
+def param_groups(model, d) -> list[dict]:
+    """Trainable weights, and biases with py-faster-rcnn's options (their own lr factor, decay or not)."""
+    weights = [p for n, p in model.named_parameters() if p.requires_grad and not n.endswith(".bias")]
+    biases = [p for n, p in model.named_parameters() if p.requires_grad and n.endswith(".bias")]
+    return [{"params": weights, "lr_factor": 1.0},
+            {"params": biases, "lr_factor": d.bias_lr_factor, "weight_decay": d.weight_decay if d.bias_decay else 0.0}]
+
+
+def learning_rate(it: int, d) -> float:
+    """Linear warm-up from lr/100 over `warmup_iterations`, then lr, then lr/10 after `lr_drop_at`."""
+    base = d.lr * (0.1 if it >= int(d.lr_drop_at * d.iterations) else 1.0)
+    if it < d.warmup_iterations:
+        return base * (0.01 + 0.99 * it / d.warmup_iterations)
+    return base
+
+
+def _validation_loss(model, samples, max_side, device) -> float | None:
     """Mean training loss on the validation stops (the detector in train mode, no gradients, no augmentation)."""
     import torch
 
@@ -136,7 +170,9 @@ def _validation_loss(model, samples, max_side) -> float | None:
     total = []
     with torch.no_grad():
         for i in range(0, len(data), 4):
-            loss, _ = _loss(model, *_collate([data[j] for j in range(i, min(i + 4, len(data)))]))
+            images, targets = _collate([data[j] for j in range(i, min(i + 4, len(data)))])
+            loss, _ = _loss(model, [im.to(device) for im in images],
+                            [{k: v.to(device) for k, v in t.items()} for t in targets])
             total.append(float(loss))
     model.eval()
     return float(np.mean(total))

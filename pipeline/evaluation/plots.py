@@ -11,7 +11,7 @@ from pipeline.io.atomic import atomic_file
 STATE_COLOURS = {"tracking": "#2a9d8f", "relocalising": "#e9c46a", "lost": "#e76f51"}
 
 
-def _save(fig, path: Path) -> Path:
+def save_figure(fig, path: Path) -> Path:
     with atomic_file(path, "wb") as fh:
         fig.savefig(fh, format="png", dpi=110, bbox_inches="tight")
     import matplotlib.pyplot as plt
@@ -45,7 +45,7 @@ def replay_figure(path: Path, title: str, errors: np.ndarray, states: list[str],
     ax2.plot(steps, particles, color="#264653")
     ax2.set_ylabel("particles")
     ax2.set_xlabel("step (dashed: kidnapping)")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def error_cdf_figure(path: Path, curves: dict[str, np.ndarray]) -> Path:
@@ -64,7 +64,7 @@ def error_cdf_figure(path: Path, curves: dict[str, np.ndarray]) -> Path:
     ax.set_ylabel("share of steps")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def trajectory_figure(path: Path, occ_map, gt: np.ndarray | None, est: np.ndarray, particles: np.ndarray,
@@ -91,4 +91,4 @@ def trajectory_figure(path: Path, occ_map, gt: np.ndarray | None, est: np.ndarra
     ax.set_aspect("equal")
     ax.set_title(title)
     ax.legend(loc="upper right", fontsize=8, markerscale=4)
-    return _save(fig, path)
+    return save_figure(fig, path)

@@ -96,7 +96,75 @@ ESTIMATES = pa.schema(
     ]
 )
 
-SCHEMAS: dict[str, pa.Schema] = {"images": IMAGES, "boxes": BOXES, "runs": RUNS, "estimates": ESTIMATES}
+# Retrieval descriptors (`siteloc extract`): `descriptor` is a fixed_size_list<float32> whose size is the
+# descriptor's dimension (the contract says "list"; each file fixes the size, readers check it is fixed).
+IPA = pa.schema(
+    [
+        pa.field("image_id", pa.string(), nullable=False),
+        pa.field("descriptor", pa.list_(pa.float32()), nullable=False),
+    ]
+)
+
+# One row per region of an image: RPN proposals and detections, boxes in original pixels.
+RPA = pa.schema(
+    [
+        pa.field("image_id", pa.string(), nullable=False),
+        pa.field("region", pa.int32(), nullable=False),
+        pa.field("source", pa.string(), nullable=False),  # "proposal" or "detection"
+        pa.field("x1", pa.float32(), nullable=False),
+        pa.field("y1", pa.float32(), nullable=False),
+        pa.field("x2", pa.float32(), nullable=False),
+        pa.field("y2", pa.float32(), nullable=False),
+        pa.field("score", pa.float32(), nullable=False),
+        pa.field("class_id", pa.int32(), nullable=False),  # 0 for proposals
+        pa.field("descriptor", pa.list_(pa.float32()), nullable=False),
+    ]
+)
+
+# The images an extraction covered, with their poses (map frame): mapping stops and run frames.
+CATALOG = pa.schema(
+    [
+        pa.field("image_id", pa.string(), nullable=False),
+        pa.field("x", pa.float64(), nullable=False),
+        pa.field("y", pa.float64(), nullable=False),
+        pa.field("theta", pa.float64(), nullable=False),
+        pa.field("group", pa.string(), nullable=False),  # the stop or the run
+        pa.field("split", pa.string(), nullable=False),  # the ingest split; "run:<name>" for run frames
+    ]
+)
+
+SCHEMAS: dict[str, pa.Schema] = {"images": IMAGES, "boxes": BOXES, "runs": RUNS, "estimates": ESTIMATES,
+                                 "ipa": IPA, "rpa": RPA, "catalog": CATALOG}
+
+
+def _contract(kind: str, table: pa.Table | None = None) -> pa.Schema:
+    """The kind's schema; a `descriptor` column takes the fixed size of the table's own column."""
+    schema = SCHEMAS[kind]
+    if "descriptor" in schema.names and table is not None and "descriptor" in table.column_names:
+        found = table.schema.field("descriptor").type
+        if pa.types.is_fixed_size_list(found):
+            i = schema.get_field_index("descriptor")
+            schema = schema.set(i, pa.field("descriptor", pa.list_(pa.float32(), found.list_size), nullable=False))
+    return schema
+
+
+def descriptor_array(matrix) -> pa.FixedSizeListArray:
+    """An (N, D) float matrix as a fixed_size_list<float32>[D] column."""
+    import numpy as np
+
+    m = np.ascontiguousarray(matrix, dtype=np.float32)
+    if m.ndim != 2:
+        raise ValueError(f"descriptors must be a 2-D array, got shape {m.shape}")
+    return pa.FixedSizeListArray.from_arrays(pa.array(m.reshape(-1)), m.shape[1])
+
+
+def descriptor_matrix(table: pa.Table):
+    """The `descriptor` column of a table as an (N, D) float32 numpy array (no copy when possible)."""
+    import numpy as np
+
+    col = table.column("descriptor").combine_chunks()
+    size = col.type.list_size
+    return np.asarray(col.values.to_numpy(zero_copy_only=False), dtype=np.float32).reshape(-1, size)
 
 
 def _with_metadata(schema: pa.Schema, kind: str, extra: dict[str, str] | None) -> pa.Schema:
@@ -112,7 +180,9 @@ def to_table(kind: str, columns: dict, metadata: dict[str, str] | None = None) -
     missing = [f.name for f in schema if f.name not in columns]
     if missing:
         raise KeyError(f"{kind} table is missing columns {missing}")
-    arrays = [pa.array(columns[f.name], type=f.type) for f in schema]
+    arrays = [columns[f.name] if isinstance(columns[f.name], pa.FixedSizeListArray) else
+              pa.array(columns[f.name], type=f.type) for f in schema]
+    schema = pa.schema([pa.field(f.name, a.type, nullable=f.nullable) for f, a in zip(schema, arrays, strict=True)])
     return pa.Table.from_arrays(arrays, schema=_with_metadata(schema, kind, metadata))
 
 
@@ -120,7 +190,7 @@ def write_table(path: Path, table: pa.Table, kind: str, metadata: dict[str, str]
     """Write `table` (cast to the `kind` contract) atomically with zstd compression."""
     merged = {k: v for k, v in table_metadata(table).items() if k not in ("table", "schema_version")}
     merged.update(metadata or {})
-    schema = _with_metadata(SCHEMAS[kind], kind, merged)
+    schema = _with_metadata(_contract(kind, table), kind, merged)
     table = table.select(schema.names).cast(schema)
     with atomic_file(Path(path), "wb") as fh:
         pq.write_table(table, fh, compression="zstd")
@@ -165,6 +235,10 @@ def read_table(path: Path, kind: str) -> pa.Table:
     missing = [n for n in SCHEMAS[kind].names if n not in table.column_names]
     if missing:
         problems.append(Problem(str(path), f"missing columns {missing}"))
+    elif "descriptor" in SCHEMAS[kind].names and not pa.types.is_fixed_size_list(table.schema.field("descriptor").type):
+        problems.append(Problem(str(path), "column 'descriptor' is not a fixed_size_list<float32>",
+                                fix="re-run `siteloc extract` with this version"))
     if problems:
         raise InputError(f"{path}: not a valid {kind} table", problems)
-    return table.select(SCHEMAS[kind].names).cast(_with_metadata(SCHEMAS[kind], kind, None).with_metadata(meta))
+    contract = _contract(kind, table)
+    return table.select(contract.names).cast(_with_metadata(contract, kind, None).with_metadata(meta))

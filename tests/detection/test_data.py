@@ -53,3 +53,19 @@ def test_scaling_flipping_and_mapping_back(ingested):
         seen.add(flipped)
         assert img.min() >= 0 and img.max() <= 1
     assert seen == {True, False}
+
+
+def test_repeat_factors_follow_the_lvis_rule():
+    from pathlib import Path
+
+    import numpy as np
+
+    from pipeline.detection.data import Sample, repeat_factors
+
+    def sample(labels):
+        return Sample("i", Path("i"), "s", 10, 10, np.zeros((len(labels), 4), np.float32), np.array(labels, np.int64))
+
+    samples = [sample([1]), sample([1, 1]), sample([2, 1]), sample([3])]  # class shares 3/4, 1/4, 1/4
+    np.testing.assert_allclose(repeat_factors(samples, 0.5), [1.0, 1.0, np.sqrt(2.0), np.sqrt(2.0)])
+    np.testing.assert_allclose(repeat_factors(samples, 0.0), 1.0)
+    np.testing.assert_allclose(repeat_factors(samples, 0.1), 1.0)  # no class rarer than the threshold

@@ -99,3 +99,65 @@ def test_cli_trains_and_refuses_what_is_not_a_site(site, tmp_path):
     assert (tmp_path / "m" / "weights.safetensors").is_file()
     res = runner.invoke(app, ["train-detector", str(tmp_path), "--out", str(tmp_path / "n"), "--config", "ci"])
     assert res.exit_code == 1 and "images.parquet" in res.output and "Traceback" not in res.output
+
+
+def test_evaluate_cli_scores_held_out_stops_and_draws_them(site, tmp_path):
+    from PIL import Image
+    from typer.testing import CliRunner
+
+    from stages.app import app
+
+    runner = CliRunner()
+    sets = [a for item in [*SMALL, "detector.iterations=6"] for a in ("--set", item)]
+    trained = runner.invoke(app, ["train-detector", str(site), "--out", str(tmp_path / "m"), "-c", "ci", *sets])
+    assert trained.exit_code == 0, trained.output
+    res = runner.invoke(app, ["evaluate-detector", str(tmp_path / "m"), str(site), "--out", str(tmp_path / "e"),
+                              "-c", "ci", *sets])
+    assert res.exit_code == 0, res.output
+    m = json.loads((tmp_path / "e" / "metrics.json").read_text())
+    test_stops = {r for r, s in zip(*_stops_and_splits(site), strict=True) if s == "test"}
+    assert m["split"] == "test" and m["stops"] == len(test_stops)
+    assert set(m["per_class"]) == set(json.loads((tmp_path / "m" / "config.json").read_text())["classes"])
+    assert sum(v["gt"] for v in m["per_class"].values()) > 0
+    assert m["map_50"] is None or 0.0 <= m["map_50"] <= 1.0
+    assert "mAP@0.5" in res.output
+    assert Image.open(tmp_path / "e" / "predictions.png").size[0] > 400
+    json.loads((tmp_path / "e" / "detections.json").read_text())
+    # A split that does not exist is a clear error, not a crash.
+    res = runner.invoke(app, ["evaluate-detector", str(tmp_path / "m"), str(site), "--out", str(tmp_path / "f"),
+                              "-c", "ci", "--set", "detector.eval_split=query"])
+    assert res.exit_code == 1 and "no 'query' images" in res.output and "Traceback" not in res.output
+
+
+def _stops_and_splits(site):
+    from pipeline.io import tables
+
+    t = tables.read_table(site / "images.parquet", "images").to_pydict()
+    return t["stop_id"], t["split"]
+
+
+def test_learning_rate_warms_up_then_drops_tenfold():
+    from pipeline.detection.train import learning_rate
+
+    d = load_config("ci", ["detector.lr=0.01", "detector.iterations=100", "detector.warmup_iterations=10",
+                           "detector.lr_drop_at=0.7"]).detector
+    assert learning_rate(0, d) == pytest.approx(1e-4)
+    assert learning_rate(5, d) == pytest.approx(0.01 * (0.01 + 0.99 * 0.5))
+    assert learning_rate(10, d) == learning_rate(69, d) == pytest.approx(0.01)
+    assert learning_rate(70, d) == learning_rate(99, d) == pytest.approx(0.001)
+
+
+def test_paper_recipe_gives_biases_twice_the_lr_and_no_decay():
+    from pipeline.detection.builders import build_detector
+    from pipeline.detection.train import param_groups
+
+    d = load_config("paper").detector
+    assert (d.backbone, d.min_size, d.max_size, tuple(d.anchor_sizes), d.rpn_post_nms_top_n_test) == (
+        "vgg16", 600, 1000, (128, 256, 512), 300)
+    model = build_detector(backbone="vgg16", num_classes=9, weights=None, min_size=64, max_size=64).model
+    weights, biases = param_groups(model, d)
+    assert biases["lr_factor"] == 2.0 and biases["weight_decay"] == 0.0 and weights["lr_factor"] == 1.0
+    trainable = {id(p) for p in model.parameters() if p.requires_grad}
+    grouped = [id(p) for p in weights["params"] + biases["params"]]
+    assert len(grouped) == len(set(grouped)) and set(grouped) == trainable
+    assert all(p.ndim == 1 for p in biases["params"])

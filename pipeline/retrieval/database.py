@@ -1,0 +1,103 @@
+"""Stage `build-index`: the retrieval database the runtime queries, and the query function it reuses.
+
+`run_build_index` fits the configured whitening (`retrieval.whitening`: pca, learned or none) on the
+database images of an extraction (the ingest's `train` stops), applies it, and writes into its output:
+`database_ipa.parquet` and `database_rpa.parquet` (whitened, l2-normalised), `catalog.parquet` (poses),
+`ipa_whitening.npz` / `rpa_whitening.npz` (arrays only) and `config.yaml`.
+
+`load_database(dir)` reads it back (numpy and pyarrow only) and `query_database` answers one query from
+its raw (unwhitened) IPA and region descriptors with the two-stage retrieval of `search`.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import SitelocConfig, write_effective_config
+from pipeline.io import tables
+
+
+@dataclass
+class RetrievalDatabase:
+    db: object  # search.Database
+    index: object
+    ipa_whitening: object | None
+    rpa_whitening: object | None
+    settings: dict
+
+
+def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
+                    force: bool = False) -> Path:
+    from pipeline.errors import OutputExistsError
+    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.retrieval.evaluate import fit_whitenings, load_extracted, split_database_queries
+
+    r = cfg.retrieval
+    out = Path(outputs["out"])
+    if out.exists() and not force:
+        raise OutputExistsError(out)
+    ex = load_extracted(Path(inputs["descriptors"]))
+    db, _ = split_database_queries(ex)
+    w_ipa, w_rpa = fit_whitenings(ex, db, r.whitening, r)
+    rows = np.concatenate([np.arange(ex.offsets[i], ex.offsets[i + 1]) for i in db])
+    ipa = ex.ipa[db] if w_ipa is None else w_ipa.transform(ex.ipa[db])
+    rpa = ex.rpa[rows] if w_rpa is None else w_rpa.transform(ex.rpa[rows])
+    ids = [ex.image_ids[i] for i in db]
+    region_owner = np.repeat(np.arange(len(db)), np.diff(ex.offsets)[db])
+    with atomic_dir(out, force=force) as tmp:
+        tables.write_table(tmp / "database_ipa.parquet", tables.to_table(
+            "ipa", {"image_id": ids, "descriptor": tables.descriptor_array(ipa)}), "ipa")
+        regions = tables.read_table(Path(inputs["descriptors"]) / "rpa.parquet", "rpa").take(rows)
+        regions = regions.set_column(regions.schema.get_field_index("descriptor"), "descriptor",
+                                     tables.descriptor_array(rpa))
+        tables.write_table(tmp / "database_rpa.parquet", regions, "rpa")
+        tables.write_table(tmp / "catalog.parquet", tables.to_table("catalog", {
+            "image_id": ids, "x": ex.poses[db, 0], "y": ex.poses[db, 1], "theta": ex.poses[db, 2],
+            "group": ex.groups[db], "split": ex.splits[db]}), "catalog")
+        for name, w in (("ipa", w_ipa), ("rpa", w_rpa)):
+            if w is not None:
+                w.save(tmp / f"{name}_whitening.npz")
+        write_text_atomic(tmp / "report.json", json.dumps({
+            "images": len(ids), "regions": int(len(region_owner)), "whitening": r.whitening,
+            "ipa_dim": int(ipa.shape[1]), "rpa_dim": int(rpa.shape[1]),
+            "ipa_dim_limited_by": None if w_ipa is None else str(w_ipa.cap_reason_),
+            "rpa_dim_limited_by": None if w_rpa is None else str(w_rpa.cap_reason_)}, indent=2) + "\n")
+        write_effective_config(cfg, tmp, stage="build-index", inputs=inputs)
+    return out
+
+
+def load_database(path: Path, *, index: str = "exact") -> RetrievalDatabase:
+    from pipeline.retrieval.search import Database, make_index
+    from pipeline.retrieval.whitening import LearnedWhitening, PCAWhitening
+
+    path = Path(path)
+    ipa_t = tables.read_table(path / "database_ipa.parquet", "ipa")
+    rpa_t = tables.read_table(path / "database_rpa.parquet", "rpa")
+    cat = tables.read_table(path / "catalog.parquet", "catalog").to_pydict()
+    ids = ipa_t.column("image_id").to_pylist()
+    pos = {i: k for k, i in enumerate(ids)}
+    owner = np.array([pos[i] for i in rpa_t.column("image_id").to_pylist()], dtype=np.int64)
+    offsets = np.searchsorted(owner, np.arange(len(ids) + 1))
+    db = Database(ids, np.column_stack([cat["x"], cat["y"], cat["theta"]]), tables.descriptor_matrix(ipa_t),
+                  tables.descriptor_matrix(rpa_t), offsets)
+    settings = json.loads((path / "report.json").read_text())
+    whitening = {"pca": PCAWhitening, "learned": LearnedWhitening}.get(settings["whitening"])
+    w_ipa = whitening.load(path / "ipa_whitening.npz") if whitening else None
+    w_rpa = PCAWhitening.load(path / "rpa_whitening.npz") if whitening else None
+    return RetrievalDatabase(db, make_index(index, db.ipa), w_ipa, w_rpa, settings)
+
+
+def query_database(rdb: RetrievalDatabase, ipa: np.ndarray, regions: np.ndarray | None, *, top_n: int = 50,
+                   weights: tuple[float, ...] = (4, 3, 2, 1), rerank: bool = True):
+    """Two-stage retrieval of one image from its raw IPA (D,) and region (Q, Dr) descriptors."""
+    from pipeline.retrieval.search import retrieve
+
+    q = ipa[None, :] if rdb.ipa_whitening is None else rdb.ipa_whitening.transform(ipa[None, :])
+    reg = None
+    if regions is not None and len(regions):
+        reg = regions if rdb.rpa_whitening is None else rdb.rpa_whitening.transform(regions)
+    return retrieve(rdb.db, rdb.index, q[0], reg, top_n=top_n, weights=weights, rerank_regions=rerank)

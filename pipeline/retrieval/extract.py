@@ -1,0 +1,197 @@
+"""Stage `extract`: IPA and RPA descriptors of every image of an ingested site (seed 000 section 3.1.2).
+
+- IPA (image-wise pooling of activations): the detector's stride-16 map (conv5_3 for `vgg16`), cropped
+  to the image so batch padding never counts, summed over positions, l2-normalised.
+- RPA (region-wise pooling of activations): per region, each channel's maximum over the cells the box
+  touches, l2-normalised. Regions: the `rpa_proposals` best RPN proposals and the detections scoring at
+  least `rpa_min_score` (boxes, scores and classes are kept).
+
+Whitening is not applied here: it is fitted on the database by `siteloc build-index`, so one
+extraction serves several whitenings. Images: the mapping stops of `images.parquet` and, with
+`include_runs`, the camera frames of the runs (query runs give query images). Work goes in chunks to
+`<out>.partial/`; an interrupted extraction resumes from its finished chunks when rerun with the same
+model, site and settings, and refuses (naming what differs) otherwise.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import SitelocConfig, write_effective_config
+from pipeline.errors import InputError, Problem, SitelocError
+from pipeline.io import tables
+
+
+@dataclass(frozen=True)
+class ImageRecord:
+    image_id: str
+    x: float
+    y: float
+    theta: float
+    group: str  # the stop, or the run, the image belongs to
+    split: str  # the ingest split for stops; "run:<name>" for run frames
+
+
+def site_images(ingested: Path, *, include_runs: bool) -> list[ImageRecord]:
+    """Every image of an ingested site with its pose: mapping stops first, then run frames."""
+    ingested = Path(ingested)
+    t = tables.read_table(ingested / "images.parquet", "images").to_pydict()
+    out = [ImageRecord(i, x, y, th, s, sp) for i, x, y, th, s, sp in
+           zip(t["image_id"], t["x"], t["y"], t["theta"], t["stop_id"], t["split"], strict=True)]
+    if include_runs and (ingested / "runs").is_dir():
+        for path in sorted((ingested / "runs").glob("*.parquet")):
+            r = tables.read_table(path, "runs").select(["run", "image_id", "gt_x", "gt_y", "gt_theta"]).to_pydict()
+            for run, image, x, y, th in zip(r["run"], r["image_id"], r["gt_x"], r["gt_y"], r["gt_theta"], strict=True):
+                if image and x is not None:
+                    out.append(ImageRecord(image, x, y, th, run, f"run:{run}"))
+    return out
+
+
+def ipa_descriptor(feature_map) -> np.ndarray:
+    """Sum pooling of a (C, h, w) map over positions, l2-normalised."""
+    from pipeline.retrieval.whitening import l2_normalize
+
+    return l2_normalize(np.asarray(feature_map, dtype=np.float32).sum(axis=(1, 2)))
+
+
+@dataclass
+class ImageDescriptors:
+    ipa: np.ndarray  # (C,) l2-normalised sum pooling
+    boxes: np.ndarray  # (K, 4) regions in original pixels: proposals first, then detections
+    meta: list[tuple[str, float, int]]  # (source, score, class id) per region
+    rpa: np.ndarray  # (K, C) l2-normalised region max pooling
+
+    def query_rows(self, n: int) -> np.ndarray:
+        """The regions a query matches when re-ranking: detections first (by score), then proposals."""
+        keys = [(src != "detection", -score) for src, score, _ in self.meta]
+        return np.array(sorted(range(len(keys)), key=lambda i: keys[i])[:n], dtype=np.int64)
+
+
+def describe(det, images: list, rpa_proposals: int, rpa_min_score: float) -> list[ImageDescriptors]:
+    """IPA and RPA descriptors of a batch of (3, H, W) images in [0, 1] from one detector pass."""
+    from pipeline.detection.builders import STRIDE
+    from pipeline.detection.inference import detector_features, region_max
+    from pipeline.retrieval.whitening import l2_normalize
+
+    out = []
+    for f in detector_features(det, images):  # regions are chosen from its output, pooled from its maps
+        top = np.argsort(-f.proposal_scores, kind="stable")[:rpa_proposals]
+        keep = f.scores >= rpa_min_score
+        boxes = np.vstack([f.proposals[top], f.boxes[keep]]).astype(np.float32)
+        meta = [("proposal", float(s), 0) for s in f.proposal_scores[top]]
+        meta += [("detection", float(s), int(c)) for s, c in zip(f.scores[keep], f.labels[keep], strict=True)]
+        sy, sx = f.scale
+        regions = region_max(f.feature_map, boxes * np.float32([sx, sy, sx, sy]), STRIDE)
+        out.append(ImageDescriptors(ipa_descriptor(f.feature_map), boxes, meta, l2_normalize(regions)))
+    return out
+
+
+def _fingerprint(model_dir: Path, images: list[ImageRecord], settings: dict) -> str:
+    from pipeline.sitegen.asset_cache import sha256_file
+
+    h = hashlib.sha256()
+    h.update(sha256_file(Path(model_dir) / "weights.safetensors").encode())
+    h.update(json.dumps(settings, sort_keys=True).encode())
+    for r in images:
+        h.update(r.image_id.encode())
+    return h.hexdigest()
+
+
+def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path], force: bool = False,
+                progress: bool = True) -> Path:
+    import pyarrow as pa
+
+    from pipeline.detection.inference import load_detector, load_image
+    from pipeline.errors import OutputExistsError
+    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.progress import progress_bar
+
+    r = cfg.retrieval
+    out, ingested, model_dir = Path(outputs["out"]), Path(inputs["data"]), Path(inputs["model"])
+    if out.exists() and not force:
+        raise OutputExistsError(out)
+    images = site_images(ingested, include_runs=r.include_runs)
+    missing = [i.image_id for i in images if not (ingested / i.image_id).is_file()]
+    if missing:
+        raise InputError(f"{ingested}: {len(missing)} images are missing",
+                         [Problem(str(ingested / m), "file is missing", fix="re-run `siteloc ingest`")
+                          for m in missing[:10]])
+    det = load_detector(model_dir, device=r.device)
+    settings = {"rpa_proposals": r.rpa_proposals, "rpa_min_score": r.rpa_min_score, "chunk": r.chunk,
+                "include_runs": r.include_runs}
+    fingerprint = _fingerprint(model_dir, images, settings)
+    partial = out.with_name(out.name + ".partial")
+    plan = partial / "plan.json"
+    if plan.is_file() and json.loads(plan.read_text()).get("fingerprint") != fingerprint:
+        raise SitelocError(f"{partial}: an interrupted extraction with another model, site or settings is there; "
+                           f"delete it (or rerun that extraction) to start afresh")
+    partial.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(plan, json.dumps({"fingerprint": fingerprint, "images": len(images)}) + "\n")
+    chunks = [images[i:i + r.chunk] for i in range(0, len(images), r.chunk)]
+    bar = progress_bar(total=len(images), desc=f"extracting ({det.device.type})", unit="img", enabled=progress)
+    for k, chunk in enumerate(chunks):
+        ipa_path, rpa_path = partial / f"ipa-{k:05d}.parquet", partial / f"rpa-{k:05d}.parquet"
+        if ipa_path.is_file() and rpa_path.is_file():
+            bar.update(len(chunk))
+            continue
+        ipa, rpa = [], {k2: [] for k2 in ("image_id", "region", "source", "x1", "y1", "x2", "y2", "score",
+                                          "class_id")}
+        rpa_desc = []
+        for b in range(0, len(chunk), r.batch):
+            batch = chunk[b:b + r.batch]
+            pix = [load_image(ingested / rec.image_id) for rec in batch]
+            for rec, d in zip(batch, describe(det, pix, r.rpa_proposals, r.rpa_min_score), strict=True):
+                ipa.append(d.ipa)
+                for j, ((src, score, cls), box) in enumerate(zip(d.meta, d.boxes, strict=True)):
+                    for key, v in zip(("image_id", "region", "source", "x1", "y1", "x2", "y2", "score", "class_id"),
+                                      (rec.image_id, j, src, *box.tolist(), score, cls), strict=True):
+                        rpa[key].append(v)
+                rpa_desc.append(d.rpa)
+            bar.update(len(batch))
+        tables.write_table(ipa_path, tables.to_table("ipa", {"image_id": [c.image_id for c in chunk],
+                                                              "descriptor": tables.descriptor_array(np.stack(ipa))}),
+                           "ipa")
+        dim = ipa[0].shape[0]
+        desc = np.vstack(rpa_desc) if rpa_desc else np.zeros((0, dim), np.float32)
+        tables.write_table(rpa_path, tables.to_table("rpa", {**rpa, "descriptor": tables.descriptor_array(desc)}),
+                           "rpa")
+    bar.close()
+    meta = {"backbone": det.config["builder"]["backbone"], "model": str(model_dir), "dim": str(ipa_dim(partial))}
+    with atomic_dir(out, force=force) as tmp:
+        for kind in ("ipa", "rpa"):
+            parts = [tables.read_table(partial / f"{kind}-{k:05d}.parquet", kind) for k in range(len(chunks))]
+            tables.write_table(tmp / f"{kind}.parquet", pa.concat_tables(parts), kind, meta)
+        _write_catalog(tmp / "catalog.parquet", images)
+        write_text_atomic(tmp / "report.json", json.dumps({
+            "images": len(images), "stop_images": sum(not i.split.startswith("run:") for i in images),
+            "run_images": sum(i.split.startswith("run:") for i in images), "ipa_dim": int(meta["dim"]),
+            "regions": int(sum(pq_rows(partial / f"rpa-{k:05d}.parquet") for k in range(len(chunks)))),
+            "backbone": meta["backbone"], "device": str(det.device)}, indent=2) + "\n")
+        write_effective_config(cfg, tmp, stage="extract", inputs=inputs)
+    for p in partial.iterdir():
+        p.unlink()
+    partial.rmdir()
+    return out
+
+
+def ipa_dim(partial: Path) -> int:
+    import pyarrow.parquet as pq
+
+    first = sorted(partial.glob("ipa-*.parquet"))[0]
+    return pq.read_schema(first).field("descriptor").type.list_size
+
+
+def pq_rows(path: Path) -> int:
+    import pyarrow.parquet as pq
+
+    return pq.ParquetFile(path).metadata.num_rows
+
+
+def _write_catalog(path: Path, images: list[ImageRecord]) -> None:
+    columns = {f: [getattr(i, f) for i in images] for f in ("image_id", "x", "y", "theta", "group", "split")}
+    tables.write_table(path, tables.to_table("catalog", columns), "catalog")

@@ -1,0 +1,125 @@
+"""Two-stage retrieval (seed 000 section 3.1.2): IPA Top-N, RPA spatial re-ranking, weighted Top-K poses.
+
+numpy only (the runtime imports this; no torch). Descriptors arrive whitened and l2-normalised.
+
+1. First stage: the `top_n` database images nearest the query's IPA descriptor in Euclidean distance,
+   through an `Index` (`ExactIndex`: one matrix product; `FaissIndex`: faiss, for large databases).
+2. Re-ranking: each of the Top-N is scored by region matching. The rule turning several query regions
+   into one score: for every query region, its best match among the database image's regions (the
+   largest cosine similarity, i.e. the smallest Euclidean distance between unit vectors, as the paper
+   compares them); the image's score is the mean of those best matches over the query regions. The
+   Top-N are then sorted by that score (ties keep the IPA order), so re-ranking is a permutation of them.
+3. Candidates: the first K of the final order, with their poses and weights `candidate_weights`
+   (4:3:2:1 normalised to sum to one).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class ExactIndex:
+    """Brute-force Euclidean search: ||q - x||^2 = 2 - 2 q.x for unit vectors, done as one product."""
+
+    name = "exact"
+
+    def __init__(self, vectors: np.ndarray):
+        self.vectors = np.ascontiguousarray(vectors, dtype=np.float32)
+        self.sq = np.einsum("ij,ij->i", self.vectors, self.vectors)
+
+    def __len__(self) -> int:
+        return len(self.vectors)
+
+    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(squared distances, indices), each (B, k), nearest first."""
+        q = np.atleast_2d(np.asarray(queries, dtype=np.float32))
+        k = min(k, len(self))
+        d = self.sq[None, :] - 2.0 * q @ self.vectors.T + np.einsum("ij,ij->i", q, q)[:, None]
+        part = np.argpartition(d, k - 1, axis=1)[:, :k] if k < len(self) else np.tile(np.arange(len(self)), (len(q), 1))
+        dk = np.take_along_axis(d, part, axis=1)
+        order = np.lexsort((part, dk), axis=1)  # by distance, ties by database order
+        return np.take_along_axis(dk, order, axis=1), np.take_along_axis(part, order, axis=1)
+
+
+class FaissIndex:
+    """faiss (`pip install faiss-cpu`): exact `IndexFlatL2`, or HNSW for very large databases."""
+
+    name = "faiss"
+
+    def __init__(self, vectors: np.ndarray, *, hnsw_m: int | None = None):
+        try:
+            import faiss
+        except ImportError:
+            from pipeline.errors import SitelocError
+
+            raise SitelocError("retrieval.index=faiss needs faiss: pip install faiss-cpu") from None
+        v = np.ascontiguousarray(vectors, dtype=np.float32)
+        self.index = faiss.IndexHNSWFlat(v.shape[1], hnsw_m) if hnsw_m else faiss.IndexFlatL2(v.shape[1])
+        self.index.add(v)
+        self.n = len(v)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        d, i = self.index.search(np.ascontiguousarray(np.atleast_2d(queries), dtype=np.float32), min(k, self.n))
+        return d, i
+
+
+def make_index(kind: str, vectors: np.ndarray):
+    return FaissIndex(vectors) if kind == "faiss" else ExactIndex(vectors)
+
+
+@dataclass
+class Database:
+    """Whitened database descriptors with poses; regions of image i are rpa[offsets[i]:offsets[i + 1]]."""
+
+    image_ids: list[str]
+    poses: np.ndarray  # (N, 3) x, y, theta in the map frame
+    ipa: np.ndarray  # (N, D)
+    rpa: np.ndarray  # (M, Dr)
+    offsets: np.ndarray  # (N + 1,)
+
+    def regions(self, i: int) -> np.ndarray:
+        return self.rpa[self.offsets[i]:self.offsets[i + 1]]
+
+
+@dataclass
+class Retrieval:
+    first: np.ndarray  # (top_n,) database indices in IPA order
+    ranked: np.ndarray  # (top_n,) the final order (a permutation of `first`)
+    region_scores: np.ndarray | None  # (top_n,) per `first` entry, None without re-ranking
+    candidates: np.ndarray  # (K, 4) x, y, theta, weight
+
+
+def region_score(query_regions: np.ndarray, db_regions: np.ndarray) -> float:
+    """Mean over query regions of the best cosine similarity among the database image's regions."""
+    if len(query_regions) == 0 or len(db_regions) == 0:
+        return -1.0
+    return float(np.mean(np.max(query_regions @ db_regions.T, axis=1)))
+
+
+def rerank(db: Database, first: np.ndarray, query_regions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(final order, region score of each `first` entry): Top-N sorted by region score, ties by IPA rank."""
+    scores = np.array([region_score(query_regions, db.regions(int(i))) for i in first])
+    order = np.lexsort((np.arange(len(first)), -scores))
+    return np.asarray(first)[order], scores
+
+
+def candidates_from(db: Database, ranked: np.ndarray, weights: tuple[float, ...]) -> np.ndarray:
+    k = min(len(weights), len(ranked))
+    w = np.asarray(weights[:k], dtype=np.float64)
+    return np.column_stack([db.poses[ranked[:k]], w / w.sum()])
+
+
+def retrieve(db: Database, index, query_ipa: np.ndarray, query_regions: np.ndarray | None, *, top_n: int = 50,
+             weights: tuple[float, ...] = (4, 3, 2, 1), rerank_regions: bool = True) -> Retrieval:
+    _, idx = index.search(query_ipa[None, :], top_n)
+    first = idx[0][idx[0] >= 0]
+    if rerank_regions and query_regions is not None and len(query_regions):
+        ranked, scores = rerank(db, first, query_regions)
+    else:
+        ranked, scores = first, None
+    return Retrieval(first, ranked, scores, candidates_from(db, ranked, weights))

@@ -1,0 +1,164 @@
+"""`siteloc extract`, `build-index`, `query`, `evaluate-retrieval`: coarse place recognition."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, echo_path, load
+
+OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)]
+
+EXTRACT_HELP = """Extract IPA and RPA descriptors of every image of an ingested site with a trained detector.
+
+MODEL is the output of `siteloc train-detector`, DATA the ingested site. IPA: the detector's stride-16
+map (conv5_3 for vgg16) cropped to the image, sum-pooled, l2-normalised. RPA: per region (the
+retrieval.rpa_proposals best RPN proposals and the detections scoring >= retrieval.rpa_min_score), each
+channel's maximum over the region, l2-normalised; boxes, scores and classes are kept. Images: the mapping
+stops and, with retrieval.include_runs, the runs' camera frames. Whitening comes later (build-index).
+
+Work goes in chunks of retrieval.chunk images to OUT.partial/; rerunning an interrupted extraction with
+the same model, site and settings resumes it. Writes ipa.parquet, rpa.parquet (descriptor:
+fixed_size_list<float32>), catalog.parquet (poses), report.json, config.yaml.
+
+Example: siteloc extract models/detector data/reference/ingested --out data/reference/descriptors
+"""
+
+INDEX_HELP = """Fit the whitening on the database images and write the retrieval database the runtime queries.
+
+DESCRIPTORS is the output of `siteloc extract`. The database is its `train` stops. retrieval.whitening:
+pca (PCA-whitening, the paper's), learned (supervised, from image pairs within retrieval.pair_distance m
+and retrieval.pair_heading_deg degrees, Radenovic et al. 2016) or none. The dimension is capped by what
+the data supports (report.json says which limit applied). Writes database_ipa.parquet,
+database_rpa.parquet, catalog.parquet, ipa_whitening.npz, rpa_whitening.npz (arrays, no pickles),
+report.json, config.yaml.
+
+Example: siteloc build-index data/reference/descriptors --out data/reference/index
+"""
+
+QUERY_HELP = """Localize images coarsely: IPA Top-N, RPA re-ranking, Top-4 candidate poses with weights 4:3:2:1.
+
+INDEX is the output of `siteloc build-index`, --model the detector the descriptors came from. Prints,
+per image, the candidates (database image, pose, weight) and with --out writes them as JSON.
+
+Example: siteloc query data/reference/index --model models/detector photo.jpg
+"""
+
+EVALUATE_HELP = """Measure retrieval on held-out queries: IPA only vs IPA + RPA re-ranking, for each whitening.
+
+DESCRIPTORS is the output of `siteloc extract`; DATA the ingested site (for the example pictures).
+Database: the train stops; queries: the test stops and the frames of the non-mapping runs. Writes
+metrics.json (mAP@4 and recall@{1,4,10,50} with positives within {1,2,5} m and {30,60} degrees, for
+none / PCA / learned whitening), report.md (the table, beside the paper's mAP@4 of 0.742), recall.png
+and examples.png (queries with their Top-4, green when within 2 m and 30 degrees), config.yaml.
+
+Example: siteloc evaluate-retrieval data/reference/descriptors data/reference/ingested --out reports/retrieval
+"""
+
+
+def extract(
+    model: Annotated[Path, typer.Argument(help="A trained detector.", show_default=False)],
+    data: Annotated[Path, typer.Argument(help="The ingested site.", show_default=False)],
+    out: OutOpt,
+    config: ConfigOpt = "demo",
+    set_: SetOpt = None,
+    force: ForceOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    with cli_errors(verbose):
+        import json
+
+        from pipeline.retrieval.extract import run_extract
+
+        cfg = load(config, set_)
+        result = run_extract(cfg, inputs={"model": model, "data": data}, outputs={"out": out}, force=force)
+        r = json.loads((result / "report.json").read_text())
+        typer.echo(f"extracted {r['images']} images ({r['stop_images']} stop views, {r['run_images']} run frames): "
+                   f"IPA {r['ipa_dim']}-d, {r['regions']} RPA regions ({r['backbone']}, {r['device']})")
+        echo_path("output", result)
+
+
+def build_index(
+    descriptors: Annotated[Path, typer.Argument(help="Output of siteloc extract.", show_default=False)],
+    out: OutOpt,
+    config: ConfigOpt = "demo",
+    set_: SetOpt = None,
+    force: ForceOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    with cli_errors(verbose):
+        import json
+
+        from pipeline.retrieval.database import run_build_index
+
+        cfg = load(config, set_)
+        result = run_build_index(cfg, inputs={"descriptors": descriptors}, outputs={"out": out}, force=force)
+        r = json.loads((result / "report.json").read_text())
+        typer.echo(f"database of {r['images']} images, {r['regions']} regions, whitening {r['whitening']}: IPA "
+                   f"{r['ipa_dim']}-d (limited by {r['ipa_dim_limited_by']}), RPA {r['rpa_dim']}-d")
+        echo_path("output", result)
+
+
+def query(
+    index: Annotated[Path, typer.Argument(help="Output of siteloc build-index.", show_default=False)],
+    images: Annotated[list[Path], typer.Argument(help="Image files to localize.", show_default=False)],
+    model: Annotated[Path, typer.Option("--model", help="The detector the database was extracted with.",
+                                        show_default=False)],
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Write the candidates as JSON here.")] = None,
+    config: ConfigOpt = "demo",
+    set_: SetOpt = None,
+    verbose: VerboseOpt = False,
+) -> None:
+    with cli_errors(verbose):
+        import json
+
+        import numpy as np
+
+        from pipeline.detection.inference import load_detector, load_image
+        from pipeline.errors import InputError, Problem
+        from pipeline.io.atomic import write_text_atomic
+        from pipeline.retrieval.database import load_database, query_database
+        from pipeline.retrieval.extract import describe
+
+        r = load(config, set_).retrieval
+        bad = [p for p in images if not p.is_file()]
+        if bad:
+            raise InputError("images not found", [Problem(str(p), "no such file") for p in bad])
+        rdb = load_database(index, index=r.index)
+        det = load_detector(model, device=r.device)
+        answers = {}
+        for path in images:
+            d = describe(det, [load_image(path)], r.rpa_proposals, r.rpa_min_score)[0]
+            res = query_database(rdb, d.ipa, d.rpa[d.query_rows(r.query_regions)], top_n=r.top_n,
+                                 weights=tuple(r.candidate_weights), rerank=r.rerank)
+            answers[str(path)] = [{"image_id": rdb.db.image_ids[int(i)], "x": float(c[0]), "y": float(c[1]),
+                                   "theta_deg": float(np.degrees(c[2])), "weight": float(c[3])}
+                                  for i, c in zip(res.ranked, res.candidates, strict=False)]
+            typer.echo(f"{path}:")
+            for k, a in enumerate(answers[str(path)]):
+                typer.echo(f"  #{k + 1}  x {a['x']:7.2f}  y {a['y']:7.2f}  theta {a['theta_deg']:7.1f} deg  "
+                           f"weight {a['weight']:.2f}  ({a['image_id']})")
+        if out:
+            write_text_atomic(out, json.dumps(answers, indent=2) + "\n")
+            echo_path("output", out)
+
+
+def evaluate_retrieval(
+    descriptors: Annotated[Path, typer.Argument(help="Output of siteloc extract.", show_default=False)],
+    data: Annotated[Path, typer.Argument(help="The ingested site (for example pictures).", show_default=False)],
+    out: OutOpt,
+    config: ConfigOpt = "demo",
+    set_: SetOpt = None,
+    force: ForceOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    with cli_errors(verbose):
+        from pipeline.retrieval.evaluate import run_evaluate_retrieval
+
+        cfg = load(config, set_)
+        result = run_evaluate_retrieval(cfg, inputs={"descriptors": descriptors, "data": data},
+                                        outputs={"out": out}, force=force)
+        typer.echo((result / "report.md").read_text())
+        echo_path("output", result)

@@ -1,0 +1,144 @@
+"""extract / build-index / evaluate-retrieval / query on a micro reference site with a barely trained detector."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.config import load_config
+from pipeline.errors import SitelocError
+from pipeline.io import tables
+from pipeline.sitegen.render import egl_available
+
+pytestmark = pytest.mark.skipif(not egl_available(), reason="no headless EGL context for the reference site")
+
+SETS = ["detector.weights=null", "detector.iterations=4", "retrieval.chunk=16", "retrieval.rpa_proposals=20"]
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    from pipeline.detection.train import run_train_detector
+    from pipeline.ingest import run_ingest
+    from pipeline.sitegen.presets import load_site_preset
+    from pipeline.sitegen.synth import run_synth
+
+    cfg = load_config("ci", SETS)
+    root = tmp_path_factory.mktemp("retrieval")
+    preset = load_site_preset(cfg.synth.site, cfg.synth.preset_overrides)
+    synth = run_synth(preset, outputs={"out": root / "site"}, seed=cfg.synth.seed, progress=False)
+    ing = run_ingest(cfg, inputs={"site": synth}, outputs={"out": root / "ing"}, progress=False)
+    model = run_train_detector(cfg, inputs={"data": ing}, outputs={"out": root / "det"}, progress=False)
+    return cfg, ing, model
+
+
+@pytest.fixture(scope="module")
+def extracted(site, tmp_path_factory):
+    from pipeline.retrieval.extract import run_extract
+
+    cfg, ing, model = site
+    return run_extract(cfg, inputs={"model": model, "data": ing}, outputs={"out": tmp_path_factory.mktemp("x") / "d"},
+                       progress=False)
+
+
+def test_tables_hold_unit_descriptors_for_every_image(site, extracted):
+    _, ing, _ = site
+    cat = tables.read_table(extracted / "catalog.parquet", "catalog").to_pydict()
+    ipa = tables.read_table(extracted / "ipa.parquet", "ipa")
+    rpa = tables.read_table(extracted / "rpa.parquet", "rpa")
+    images = tables.read_table(ing / "images.parquet", "images").num_rows
+    assert len(cat["image_id"]) > images  # the stops and the run frames
+    assert ipa.column("image_id").to_pylist() == cat["image_id"]
+    assert ipa.schema.field("descriptor").type.list_size == 112
+    np.testing.assert_allclose(np.linalg.norm(tables.descriptor_matrix(ipa), axis=1), 1, rtol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(tables.descriptor_matrix(rpa), axis=1), 1, rtol=1e-4)
+    sources = set(rpa.column("source").to_pylist())
+    assert "proposal" in sources and sources <= {"proposal", "detection"}
+    per_image = np.bincount([cat["image_id"].index(i) for i in rpa.column("image_id").to_pylist()])
+    assert per_image.min() >= 1
+
+
+def test_ipa_is_the_l2_normalised_sum_of_the_cropped_map_and_ignores_padding(site):
+    from pipeline.detection.inference import detector_features, load_detector
+    from pipeline.retrieval.extract import describe
+
+    _, _, model = site
+    det = load_detector(model, device="cpu")
+    torch.manual_seed(0)
+    small, big = torch.rand(3, 72, 96), torch.rand(3, 150, 130)
+    alone = describe(det, [small], 20, 0.3)[0]
+    padded = describe(det, [small, big], 20, 0.3)[0]  # batched with a larger image: padded to its size
+    np.testing.assert_allclose(padded.ipa, alone.ipa, rtol=1e-4, atol=1e-6)
+    fmap = detector_features(det, [small])[0].feature_map.numpy()
+    want = fmap.sum(axis=(1, 2))
+    np.testing.assert_allclose(alone.ipa, want / np.linalg.norm(want), rtol=1e-5, atol=1e-7)
+    order = alone.query_rows(5)
+    kinds = [alone.meta[i][0] for i in order]
+    assert kinds == sorted(kinds, key=lambda k: k != "detection")
+
+
+def test_interrupted_extraction_resumes_and_a_changed_one_is_refused(site, extracted, tmp_path, monkeypatch):
+    import pipeline.retrieval.extract as X
+
+    cfg, ing, model = site
+    real, calls = X.describe, {"n": 0}
+
+    def failing(*a, **k):
+        calls["n"] += 1
+        if calls["n"] > 5:  # 4 images per batch, 16 per chunk: dies in the second chunk
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(X, "describe", failing)
+    with pytest.raises(KeyboardInterrupt):
+        X.run_extract(cfg, inputs={"model": model, "data": ing}, outputs={"out": tmp_path / "d"}, progress=False)
+    assert (tmp_path / "d.partial" / "ipa-00000.parquet").is_file() and not (tmp_path / "d").exists()
+    other = load_config("ci", [*SETS, "retrieval.rpa_proposals=7"])
+    with pytest.raises(SitelocError, match="interrupted extraction with another"):
+        X.run_extract(other, inputs={"model": model, "data": ing}, outputs={"out": tmp_path / "d"}, progress=False)
+    monkeypatch.setattr(X, "describe", real)
+    out = X.run_extract(cfg, inputs={"model": model, "data": ing}, outputs={"out": tmp_path / "d"}, progress=False)
+    assert not (tmp_path / "d.partial").exists()
+    for name in ("ipa.parquet", "rpa.parquet", "catalog.parquet"):
+        a = tables.read_table(out / name, name.split(".")[0])
+        b = tables.read_table(extracted / name, name.split(".")[0])
+        assert a.drop_columns(["descriptor"]).equals(b.drop_columns(["descriptor"])) if "descriptor" in \
+            a.column_names else a.equals(b)
+        if "descriptor" in a.column_names:
+            np.testing.assert_allclose(tables.descriptor_matrix(a), tables.descriptor_matrix(b), atol=1e-5)
+
+
+def test_cli_builds_the_index_evaluates_and_answers_a_query(site, extracted, tmp_path):
+    from typer.testing import CliRunner
+
+    from stages.app import app
+
+    cfg, ing, model = site
+    runner = CliRunner()
+    sets = [a for s in SETS for a in ("--set", s)]
+    res = runner.invoke(app, ["build-index", str(extracted), "--out", str(tmp_path / "idx"), "-c", "ci", *sets])
+    assert res.exit_code == 0, res.output
+    report = json.loads((tmp_path / "idx" / "report.json").read_text())
+    assert report["whitening"] == "pca" and report["ipa_dim"] <= 112
+    res = runner.invoke(app, ["evaluate-retrieval", str(extracted), str(ing), "--out", str(tmp_path / "ev"), "-c",
+                              "ci", *sets])
+    assert res.exit_code == 0, res.output
+    m = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    assert set(m["variants"]) | {f"{s} / {w}" for w in m["skipped"] for s in ("ipa", "ipa+rpa")} == {
+        f"{s} / {w}" for s in ("ipa", "ipa+rpa") for w in ("none", "pca", "learned")}
+    assert "ipa+rpa / pca" in m["variants"]
+    for v in m["variants"].values():
+        for key, t in v.items():
+            if key != "dims" and t["queries_with_positive"]:
+                assert 0 <= t["recall_at_1"] <= t["recall_at_4"] <= t["recall_at_10"] <= 1
+    assert (tmp_path / "ev" / "recall.png").is_file() and (tmp_path / "ev" / "examples.png").is_file()
+    query_image = ing / tables.read_table(ing / "images.parquet", "images").column("image_id")[0].as_py()
+    res = runner.invoke(app, ["query", str(tmp_path / "idx"), str(query_image), "--model", str(model), "--out",
+                              str(tmp_path / "q.json"), "-c", "ci", *sets])
+    assert res.exit_code == 0, res.output
+    answer = json.loads((tmp_path / "q.json").read_text())[str(query_image)]
+    assert [round(a["weight"], 3) for a in answer] == [0.4, 0.3, 0.2, 0.1]
+    res = runner.invoke(app, ["query", str(tmp_path / "idx"), str(tmp_path / "none.jpg"), "--model", str(model)])
+    assert res.exit_code == 1 and "no such file" in res.output
