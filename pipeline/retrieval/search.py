@@ -58,12 +58,15 @@ class FaissIndex:
         v = np.ascontiguousarray(vectors, dtype=np.float32)
         self.index = faiss.IndexHNSWFlat(v.shape[1], hnsw_m) if hnsw_m else faiss.IndexFlatL2(v.shape[1])
         self.index.add(v)
+        self.hnsw = bool(hnsw_m)
         self.n = len(v)
 
     def __len__(self) -> int:
         return self.n
 
     def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        if self.hnsw:  # the beam must be at least as wide as the list asked for (faiss' default is 16)
+            self.index.hnsw.efSearch = max(2 * k, 64)
         d, i = self.index.search(np.ascontiguousarray(np.atleast_2d(queries), dtype=np.float32), min(k, self.n))
         return d, i
 
