@@ -1,10 +1,10 @@
 """Stage `train-detector`: fine-tune the 9-class Faster R-CNN on an ingested site.
 
 SGD with momentum and weight decay, the learning rate warming up linearly, then dropping 10x after
-`lr_drop_at` of the iterations (the paper's 1e-3 then 1e-4); images drawn with repeat-factor sampling
-so rare classes are seen more often; on a GPU with float16 autocast and gradient scaling unless `amp`
-is off; batches drawn from the training stops (the ingest's `train` split minus a
-seeded share of stops held for validation), flips and colour jitter. Every `checkpoint_every`
+`lr_drop_at` of the iterations (the paper's 1e-3 then 1e-4); on a GPU with float16 autocast and gradient
+scaling unless `amp` is off; batches drawn from the training stops (the ingest's `train` split minus a
+seeded share of stops held for validation), uniformly or, with `repeat_factor_threshold`, favouring
+images of rare classes; flips and colour jitter. Every `checkpoint_every`
 iterations a checkpoint of tensors and primitives only (model, optimizer, iteration, generator states)
 is written atomically to `<out>.partial/checkpoint.pt`; a rerun resumes from it (`torch.load` with
 weights_only=True). A non-finite loss stops training with an error naming the iteration. The finished
