@@ -54,6 +54,9 @@ metrics.json (mAP@4 and recall@{1,4,10,50} with positives within {1,2,5} m and {
 none / PCA / learned whitening), report.md (the table, beside the paper's mAP@4 of 0.742), recall.png
 and examples.png (queries with their Top-4, green when within 2 m and 30 degrees), config.yaml.
 
+With --queries D2 --queries-data DATA2 the queries come from another extraction (the test stops and
+query runs of the building after `siteloc synth --change`, say) against the same database.
+
 Example: siteloc evaluate-retrieval data/reference/descriptors data/reference/ingested --out reports/retrieval
 """
 
@@ -149,16 +152,26 @@ def evaluate_retrieval(
     descriptors: Annotated[Path, typer.Argument(help="Output of siteloc extract.", show_default=False)],
     data: Annotated[Path, typer.Argument(help="The ingested site (for example pictures).", show_default=False)],
     out: OutOpt,
+    queries: Annotated[Path | None, typer.Option(
+        "--queries", help="Take the queries from this other extraction (e.g. of the site after synth --change); "
+        "the database stays DESCRIPTORS' train stops.")] = None,
+    queries_data: Annotated[Path | None, typer.Option(
+        "--queries-data", help="The ingested site of --queries (for its pictures).")] = None,
     config: ConfigOpt = "demo",
     set_: SetOpt = None,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     with cli_errors(verbose):
+        from pipeline.errors import ConfigError
         from pipeline.retrieval.evaluate import run_evaluate_retrieval
 
+        if (queries is None) != (queries_data is None):
+            raise ConfigError("--queries and --queries-data go together: the other extraction and its ingested site")
         cfg = load(config, set_)
-        result = run_evaluate_retrieval(cfg, inputs={"descriptors": descriptors, "data": data},
-                                        outputs={"out": out}, force=force)
+        inputs = {"descriptors": descriptors, "data": data}
+        if queries is not None:
+            inputs |= {"query_descriptors": queries, "query_data": queries_data}
+        result = run_evaluate_retrieval(cfg, inputs=inputs, outputs={"out": out}, force=force)
         typer.echo((result / "report.md").read_text())
         echo_path("output", result)

@@ -102,8 +102,9 @@ def _apply(w, x):
     return x if w is None else w.transform(x)
 
 
-def rank_all(ex: Extracted, db: np.ndarray, queries: np.ndarray, whitening: str, cfg) -> dict:
-    """Ranked database positions (into `db`) of every query: IPA only and after RPA re-ranking."""
+def rank_all(ex: Extracted, db: np.ndarray, qx: Extracted, queries: np.ndarray, whitening: str, cfg) -> dict:
+    """Ranked database positions (into `db` of `ex`) of every query (`queries` of `qx`): IPA only and after
+    RPA re-ranking."""
     from pipeline.retrieval.search import Database, make_index, rerank
 
     w_ipa, w_rpa = fit_whitenings(ex, db, whitening, cfg)
@@ -112,10 +113,10 @@ def rank_all(ex: Extracted, db: np.ndarray, queries: np.ndarray, whitening: str,
     database = Database([ex.image_ids[i] for i in db], ex.poses[db], _apply(w_ipa, ex.ipa[db]),
                         _apply(w_rpa, ex.rpa[np.concatenate(db_rows)]), offsets)
     index = make_index(cfg.index, database.ipa)
-    _, first = index.search(_apply(w_ipa, ex.ipa[queries]), cfg.top_n)
+    _, first = index.search(_apply(w_ipa, qx.ipa[queries]), cfg.top_n)
     reranked = np.empty_like(first)
     for k, q in enumerate(queries):
-        regions = _apply(w_rpa, ex.rpa[query_regions(ex, q, cfg.query_regions)])
+        regions = _apply(w_rpa, qx.rpa[query_regions(qx, q, cfg.query_regions)])
         reranked[k] = rerank(database, first[k], regions)[0]
     dims = {"ipa": int(database.ipa.shape[1]), "rpa": int(database.rpa.shape[1])}
     if w_ipa is not None:
@@ -150,6 +151,14 @@ def run_evaluate_retrieval(cfg: SitelocConfig, *, inputs: dict[str, Path], outpu
         raise OutputExistsError(out)
     ex = load_extracted(Path(inputs["descriptors"]))
     db, queries = split_database_queries(ex)
+    qx, query_root = ex, Path(inputs["data"])
+    if inputs.get("query_descriptors"):  # queries from another extraction, e.g. the site after `synth --change`
+        qx, query_root = load_extracted(Path(inputs["query_descriptors"])), Path(inputs["query_data"])
+        _, queries = split_database_queries(qx)
+        if qx.ipa.shape[1] != ex.ipa.shape[1]:
+            raise InputError("the two extractions have different descriptor sizes",
+                             [Problem(str(inputs["query_descriptors"]), f"{qx.ipa.shape[1]}-d, database "
+                                      f"{ex.ipa.shape[1]}-d", fix="extract both with the same detector")])
     if len(db) < 2 or len(queries) == 0:
         raise InputError(f"{inputs['descriptors']}: {len(db)} database and {len(queries)} query images",
                          [Problem(str(Path(inputs["descriptors"]) / "catalog.parquet"),
@@ -158,24 +167,25 @@ def run_evaluate_retrieval(cfg: SitelocConfig, *, inputs: dict[str, Path], outpu
     results, rankings, skipped = {}, {}, {}
     for whitening in ("none", "pca", "learned"):
         try:
-            ranked = rank_all(ex, db, queries, whitening, r)
+            ranked = rank_all(ex, db, qx, queries, whitening, r)
         except InputError as exc:
             skipped[whitening] = str(exc)
             continue
         for stage in ("ipa", "ipa+rpa"):
             name = f"{stage} / {whitening}"
             rankings[name] = ranked[stage]
-            results[name] = {"dims": ranked["dims"], **measure(ranked[stage], ex.poses[queries], ex.poses[db])}
+            results[name] = {"dims": ranked["dims"], **measure(ranked[stage], qx.poses[queries], ex.poses[db])}
     metrics = {"database_images": int(len(db)), "query_images": int(len(queries)), "top_n": r.top_n,
+               "queries_from": str(inputs.get("query_descriptors") or inputs["descriptors"]),
                "query_regions": r.query_regions, "variants": results, "skipped": skipped,
                "paper_map_at_4": 0.742}
     best = f"ipa+rpa / {r.whitening}" if r.whitening not in skipped else "ipa+rpa / pca"
     with atomic_dir(out, force=force) as tmp:
         write_text_atomic(tmp / "metrics.json", json.dumps(metrics, indent=2) + "\n")
         write_text_atomic(tmp / "report.md", report_table(metrics))
-        recall_figure(tmp / "recall.png", rankings, ex.poses[queries], ex.poses[db], MAIN)
-        examples_figure(tmp / "examples.png", Path(inputs["data"]), ex, db, queries, rankings[best], MAIN,
-                        title=best)
+        recall_figure(tmp / "recall.png", rankings, qx.poses[queries], ex.poses[db], MAIN)
+        examples_figure(tmp / "examples.png", (Path(inputs["data"]), ex, db), (query_root, qx, queries),
+                        rankings[best], MAIN, title=best)
         write_effective_config(cfg, tmp, stage="evaluate-retrieval", inputs=inputs)
     return out
 

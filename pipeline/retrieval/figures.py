@@ -35,9 +35,11 @@ def recall_figure(path: Path, rankings: dict[str, np.ndarray], query_poses: np.n
     return save_figure(fig, path)
 
 
-def examples_figure(path: Path, image_root: Path | None, ex, db: np.ndarray, queries: np.ndarray,
-                    ranked: np.ndarray, threshold: tuple[float, float], *, title: str, rows: int = 6) -> Path:
-    """Rows of (query, Top-4): a green border marks a positive, red a wrong place."""
+def examples_figure(path: Path, database: tuple, query: tuple, ranked: np.ndarray, threshold: tuple[float, float],
+                    *, title: str, rows: int = 6) -> Path:
+    """Rows of (query, Top-4): a green border marks a positive, red a wrong place.
+
+    `database` and `query` are (image root, extraction, image indices) each; they may be two sites."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -47,19 +49,22 @@ def examples_figure(path: Path, image_root: Path | None, ex, db: np.ndarray, que
     from pipeline.evaluation.plots import save_figure
     from pipeline.retrieval.metrics import positives
 
+    db_root, ex, db = database
+    q_root, qx, queries = query
     picks = np.unique(np.linspace(0, len(queries) - 1, min(rows, len(queries))).round().astype(int))
     fig, axes = plt.subplots(len(picks), 5, figsize=(13, 2.3 * len(picks)), squeeze=False)
     for row, k in zip(axes, picks, strict=True):
         q = queries[k]
-        pos = positives(ex.poses[[q]], ex.poses[db[ranked[k][:4]]], *threshold)[0]
-        entries = [(q, "query", None)] + [(db[j], f"#{n + 1}", bool(pos[n])) for n, j in enumerate(ranked[k][:4])]
-        for ax, (i, label, ok) in zip(row, entries, strict=False):
+        pos = positives(qx.poses[[q]], ex.poses[db[ranked[k][:4]]], *threshold)[0]
+        entries = [(q_root, qx, q, "query", None)] + [
+            (db_root, ex, db[j], f"#{n + 1}", bool(pos[n])) for n, j in enumerate(ranked[k][:4])]
+        for ax, (root, source, i, label, ok) in zip(row, entries, strict=False):
             ax.set_xticks([])
             ax.set_yticks([])
-            if image_root is not None and (image_root / ex.image_ids[i]).is_file():
-                with Image.open(image_root / ex.image_ids[i]) as im:
+            if (root / source.image_ids[i]).is_file():
+                with Image.open(root / source.image_ids[i]) as im:
                     ax.imshow(im.convert("RGB"))
-            x, y, th = ex.poses[i]
+            x, y, th = source.poses[i]
             ax.set_title(f"{label}  ({x:.1f}, {y:.1f}, {np.degrees(th):.0f} deg)", fontsize=7)
             colour = "black" if ok is None else ("#2a9d8f" if ok else "#e63946")
             for spine in ax.spines.values():

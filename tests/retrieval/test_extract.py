@@ -142,3 +142,24 @@ def test_cli_builds_the_index_evaluates_and_answers_a_query(site, extracted, tmp
     assert [round(a["weight"], 3) for a in answer] == [0.4, 0.3, 0.2, 0.1]
     res = runner.invoke(app, ["query", str(tmp_path / "idx"), str(tmp_path / "none.jpg"), "--model", str(model)])
     assert res.exit_code == 1 and "no such file" in res.output
+
+
+def test_queries_from_another_extraction_use_the_same_database(site, extracted, tmp_path):
+    from typer.testing import CliRunner
+
+    from stages.app import app
+
+    _, ing, _ = site
+    runner = CliRunner()
+    sets = [a for s in SETS for a in ("--set", s)]
+    base = ["evaluate-retrieval", str(extracted), str(ing), "-c", "ci", *sets]
+    assert runner.invoke(app, [*base, "--out", str(tmp_path / "a")]).exit_code == 0
+    # The same extraction passed as "another" one must give the same figures: queries are picked alike.
+    res = runner.invoke(app, [*base, "--out", str(tmp_path / "b"), "--queries", str(extracted), "--queries-data",
+                              str(ing)])
+    assert res.exit_code == 0, res.output
+    a = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    b = json.loads((tmp_path / "b" / "metrics.json").read_text())
+    assert a["variants"] == b["variants"] and b["queries_from"] == str(extracted)
+    res = runner.invoke(app, [*base, "--out", str(tmp_path / "c"), "--queries", str(extracted)])
+    assert res.exit_code == 1 and "--queries-data" in res.output
