@@ -33,6 +33,11 @@ def _collate(batch):
     return [b[0] for b in batch], [{k: v for k, v in b[1].items() if k != "scale"} for b in batch]
 
 
+def _to(device, images, targets):
+    images = [im.to(device, non_blocking=True) for im in images]
+    return images, [{k: v.to(device) for k, v in t.items()} for t in targets]
+
+
 def _loss(model, images, targets):
     losses = model(images, targets)
     return sum(losses.values()), {k: float(v.detach()) for k, v in losses.items()}
@@ -94,9 +99,8 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     for it in range(start, d.iterations):
         for g in opt.param_groups:
             g["lr"] = learning_rate(it, d) * g["lr_factor"]
-        images, targets = _collate([data[int(i)] for i in rng.choice(len(data), size=d.batch_size, p=draw)])
-        images = [im.to(device, non_blocking=True) for im in images]
-        targets = [{k: v.to(device) for k, v in t.items()} for t in targets]
+        batch = [data[int(i)] for i in rng.choice(len(data), size=d.batch_size, p=draw)]
+        images, targets = _to(device, *_collate(batch))
         with torch.autocast(device_type=device.type, dtype=torch.float16, enabled=amp):
             loss, parts = _loss(model, images, targets)
         if not math.isfinite(loss.item()):
@@ -170,9 +174,7 @@ def _validation_loss(model, samples, max_side, device) -> float | None:
     total = []
     with torch.no_grad():
         for i in range(0, len(data), 4):
-            images, targets = _collate([data[j] for j in range(i, min(i + 4, len(data)))])
-            loss, _ = _loss(model, [im.to(device) for im in images],
-                            [{k: v.to(device) for k, v in t.items()} for t in targets])
+            loss, _ = _loss(model, *_to(device, *_collate([data[j] for j in range(i, min(i + 4, len(data)))])))
             total.append(float(loss))
     model.eval()
     return float(np.mean(total))

@@ -34,7 +34,13 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
                     force: bool = False) -> Path:
     from pipeline.errors import OutputExistsError
     from pipeline.io.atomic import atomic_dir, write_text_atomic
-    from pipeline.retrieval.evaluate import fit_whitenings, load_extracted, split_database_queries
+    from pipeline.retrieval.evaluate import (
+        fit_whitenings,
+        load_extracted,
+        region_rows,
+        split_database_queries,
+        whitened_database,
+    )
 
     r = cfg.retrieval
     out = Path(outputs["out"])
@@ -43,15 +49,12 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
     ex = load_extracted(Path(inputs["descriptors"]))
     db, _ = split_database_queries(ex)
     w_ipa, w_rpa = fit_whitenings(ex, db, r.whitening, r)
-    rows = np.concatenate([np.arange(ex.offsets[i], ex.offsets[i + 1]) for i in db])
-    ipa = ex.ipa[db] if w_ipa is None else w_ipa.transform(ex.ipa[db])
-    rpa = ex.rpa[rows] if w_rpa is None else w_rpa.transform(ex.rpa[rows])
-    ids = [ex.image_ids[i] for i in db]
-    region_owner = np.repeat(np.arange(len(db)), np.diff(ex.offsets)[db])
+    database = whitened_database(ex, db, w_ipa, w_rpa)
+    ids, ipa, rpa = database.image_ids, database.ipa, database.rpa
     with atomic_dir(out, force=force) as tmp:
         tables.write_table(tmp / "database_ipa.parquet", tables.to_table(
             "ipa", {"image_id": ids, "descriptor": tables.descriptor_array(ipa)}), "ipa")
-        regions = tables.read_table(Path(inputs["descriptors"]) / "rpa.parquet", "rpa").take(rows)
+        regions = tables.read_table(Path(inputs["descriptors"]) / "rpa.parquet", "rpa").take(region_rows(ex, db))
         regions = regions.set_column(regions.schema.get_field_index("descriptor"), "descriptor",
                                      tables.descriptor_array(rpa))
         tables.write_table(tmp / "database_rpa.parquet", regions, "rpa")
@@ -62,7 +65,7 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
             if w is not None:
                 w.save(tmp / f"{name}_whitening.npz")
         write_text_atomic(tmp / "report.json", json.dumps({
-            "images": len(ids), "regions": int(len(region_owner)), "whitening": r.whitening,
+            "images": len(ids), "regions": int(len(rpa)), "whitening": r.whitening,
             "ipa_dim": int(ipa.shape[1]), "rpa_dim": int(rpa.shape[1]),
             "ipa_dim_limited_by": None if w_ipa is None else str(w_ipa.cap_reason_),
             "rpa_dim_limited_by": None if w_rpa is None else str(w_rpa.cap_reason_)}, indent=2) + "\n")
@@ -71,7 +74,7 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
 
 
 def load_database(path: Path, *, index: str = "exact") -> RetrievalDatabase:
-    from pipeline.retrieval.search import Database, make_index
+    from pipeline.retrieval.search import Database, make_index, region_offsets
     from pipeline.retrieval.whitening import LearnedWhitening, PCAWhitening
 
     path = Path(path)
@@ -79,9 +82,14 @@ def load_database(path: Path, *, index: str = "exact") -> RetrievalDatabase:
     rpa_t = tables.read_table(path / "database_rpa.parquet", "rpa")
     cat = tables.read_table(path / "catalog.parquet", "catalog").to_pydict()
     ids = ipa_t.column("image_id").to_pylist()
-    pos = {i: k for k, i in enumerate(ids)}
-    owner = np.array([pos[i] for i in rpa_t.column("image_id").to_pylist()], dtype=np.int64)
-    offsets = np.searchsorted(owner, np.arange(len(ids) + 1))
+    try:
+        offsets = region_offsets(ids, rpa_t.column("image_id").to_pylist())
+    except (ValueError, KeyError):
+        from pipeline.errors import InputError, Problem
+
+        raise InputError(f"{path}: database_rpa.parquet does not follow database_ipa.parquet's images",
+                         [Problem(str(path / "database_rpa.parquet"), "rows out of order or of unknown images",
+                                  fix="re-run `siteloc build-index`")]) from None
     db = Database(ids, np.column_stack([cat["x"], cat["y"], cat["theta"]]), tables.descriptor_matrix(ipa_t),
                   tables.descriptor_matrix(rpa_t), offsets)
     settings = json.loads((path / "report.json").read_text())

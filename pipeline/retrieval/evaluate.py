@@ -20,6 +20,7 @@ import numpy as np
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem
 from pipeline.io import tables
+from pipeline.retrieval.search import query_region_order, region_offsets
 
 DISTANCES = (1.0, 2.0, 5.0)
 HEADINGS = (30.0, 60.0)
@@ -49,13 +50,12 @@ def load_extracted(path: Path) -> Extracted:
     if ipa_t.column("image_id").to_pylist() != ids:
         raise InputError(f"{path}: ipa.parquet and catalog.parquet list different images",
                          [Problem(str(path / "ipa.parquet"), "image order differs", fix="re-run `siteloc extract`")])
-    rpa_ids = np.asarray(rpa_t.column("image_id").to_pylist())
-    pos = {i: k for k, i in enumerate(ids)}
-    owner = np.array([pos[i] for i in rpa_ids], dtype=np.int64)
-    if np.any(np.diff(owner) < 0):
-        raise InputError(f"{path}: rpa.parquet rows are not grouped by image",
-                         [Problem(str(path / "rpa.parquet"), "rows out of order", fix="re-run `siteloc extract`")])
-    offsets = np.searchsorted(owner, np.arange(len(ids) + 1))
+    try:
+        offsets = region_offsets(ids, rpa_t.column("image_id").to_pylist())
+    except (ValueError, KeyError):
+        raise InputError(f"{path}: rpa.parquet rows are not grouped by the catalog's images",
+                         [Problem(str(path / "rpa.parquet"), "rows out of order or of unknown images",
+                                  fix="re-run `siteloc extract`")]) from None
     return Extracted(ids, np.column_stack([cat["x"], cat["y"], cat["theta"]]), np.asarray(cat["group"]),
                      np.asarray(cat["split"]), tables.descriptor_matrix(ipa_t), tables.descriptor_matrix(rpa_t),
                      offsets, np.asarray(rpa_t.column("source").to_pylist()),
@@ -72,8 +72,7 @@ def split_database_queries(ex: Extracted) -> tuple[np.ndarray, np.ndarray]:
 def query_regions(ex: Extracted, i: int, n: int) -> np.ndarray:
     """Row indices (into ex.rpa) of image i's regions used as query regions: detections first, by score."""
     rows = np.arange(ex.offsets[i], ex.offsets[i + 1])
-    order = np.lexsort((-ex.rpa_score[rows], ex.rpa_source[rows] != "detection"))
-    return rows[order[:n]]
+    return rows[query_region_order(ex.rpa_source[rows], ex.rpa_score[rows], n)]
 
 
 def fit_whitenings(ex: Extracted, db: np.ndarray, kind: str, cfg) -> tuple:
@@ -82,7 +81,7 @@ def fit_whitenings(ex: Extracted, db: np.ndarray, kind: str, cfg) -> tuple:
 
     if kind == "none":
         return None, None
-    db_rows = np.concatenate([np.arange(ex.offsets[i], ex.offsets[i + 1]) for i in db])
+    db_rows = region_rows(ex, db)
     rng = np.random.default_rng(0)
     sample = rng.choice(db_rows, size=min(len(db_rows), 100_000), replace=False) if len(db_rows) else db_rows
     rpa_w = PCAWhitening(cfg.rpa_dims).fit(ex.rpa[np.sort(sample)])
@@ -102,16 +101,27 @@ def _apply(w, x):
     return x if w is None else w.transform(x)
 
 
+def region_rows(ex: Extracted, images: np.ndarray) -> np.ndarray:
+    """Row indices into ex.rpa of the regions of `images`, image by image."""
+    return np.concatenate([np.arange(ex.offsets[i], ex.offsets[i + 1]) for i in images] + [np.zeros(0, np.int64)])
+
+
+def whitened_database(ex: Extracted, db: np.ndarray, w_ipa, w_rpa):
+    """The search Database of images `db` of an extraction, whitened by the given transforms (None: as is)."""
+    from pipeline.retrieval.search import Database
+
+    offsets = np.concatenate([[0], np.cumsum(np.diff(ex.offsets)[db])])
+    return Database([ex.image_ids[i] for i in db], ex.poses[db], _apply(w_ipa, ex.ipa[db]),
+                    _apply(w_rpa, ex.rpa[region_rows(ex, db)]), offsets)
+
+
 def rank_all(ex: Extracted, db: np.ndarray, qx: Extracted, queries: np.ndarray, whitening: str, cfg) -> dict:
     """Ranked database positions (into `db` of `ex`) of every query (`queries` of `qx`): IPA only and after
     RPA re-ranking."""
-    from pipeline.retrieval.search import Database, make_index, rerank
+    from pipeline.retrieval.search import make_index, rerank
 
     w_ipa, w_rpa = fit_whitenings(ex, db, whitening, cfg)
-    db_rows = [np.arange(ex.offsets[i], ex.offsets[i + 1]) for i in db]
-    offsets = np.concatenate([[0], np.cumsum([len(r) for r in db_rows])])
-    database = Database([ex.image_ids[i] for i in db], ex.poses[db], _apply(w_ipa, ex.ipa[db]),
-                        _apply(w_rpa, ex.rpa[np.concatenate(db_rows)]), offsets)
+    database = whitened_database(ex, db, w_ipa, w_rpa)
     index = make_index(cfg.index, database.ipa)
     _, first = index.search(_apply(w_ipa, qx.ipa[queries]), cfg.top_n)
     reranked = np.empty_like(first)

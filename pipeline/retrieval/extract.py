@@ -68,8 +68,9 @@ class ImageDescriptors:
 
     def query_rows(self, n: int) -> np.ndarray:
         """The regions a query matches when re-ranking: detections first (by score), then proposals."""
-        keys = [(src != "detection", -score) for src, score, _ in self.meta]
-        return np.array(sorted(range(len(keys)), key=lambda i: keys[i])[:n], dtype=np.int64)
+        from pipeline.retrieval.search import query_region_order
+
+        return query_region_order([m[0] for m in self.meta], [m[1] for m in self.meta], n)
 
 
 def describe(det, images: list, rpa_proposals: int, rpa_min_score: float) -> list[ImageDescriptors]:
@@ -161,35 +162,24 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
         tables.write_table(rpa_path, tables.to_table("rpa", {**rpa, "descriptor": tables.descriptor_array(desc)}),
                            "rpa")
     bar.close()
-    meta = {"backbone": det.config["builder"]["backbone"], "model": str(model_dir), "dim": str(ipa_dim(partial))}
+    merged = {kind: pa.concat_tables([tables.read_table(partial / f"{kind}-{k:05d}.parquet", kind)
+                                      for k in range(len(chunks))]) for kind in ("ipa", "rpa")}
+    dim = merged["ipa"].schema.field("descriptor").type.list_size
+    meta = {"backbone": det.config["builder"]["backbone"], "model": str(model_dir), "dim": str(dim)}
     with atomic_dir(out, force=force) as tmp:
-        for kind in ("ipa", "rpa"):
-            parts = [tables.read_table(partial / f"{kind}-{k:05d}.parquet", kind) for k in range(len(chunks))]
-            tables.write_table(tmp / f"{kind}.parquet", pa.concat_tables(parts), kind, meta)
+        for kind, table in merged.items():
+            tables.write_table(tmp / f"{kind}.parquet", table, kind, meta)
         _write_catalog(tmp / "catalog.parquet", images)
         write_text_atomic(tmp / "report.json", json.dumps({
             "images": len(images), "stop_images": sum(not i.split.startswith("run:") for i in images),
-            "run_images": sum(i.split.startswith("run:") for i in images), "ipa_dim": int(meta["dim"]),
-            "regions": int(sum(pq_rows(partial / f"rpa-{k:05d}.parquet") for k in range(len(chunks)))),
+            "run_images": sum(i.split.startswith("run:") for i in images), "ipa_dim": int(dim),
+            "regions": merged["rpa"].num_rows,
             "backbone": meta["backbone"], "device": str(det.device)}, indent=2) + "\n")
         write_effective_config(cfg, tmp, stage="extract", inputs=inputs)
     for p in partial.iterdir():
         p.unlink()
     partial.rmdir()
     return out
-
-
-def ipa_dim(partial: Path) -> int:
-    import pyarrow.parquet as pq
-
-    first = sorted(partial.glob("ipa-*.parquet"))[0]
-    return pq.read_schema(first).field("descriptor").type.list_size
-
-
-def pq_rows(path: Path) -> int:
-    import pyarrow.parquet as pq
-
-    return pq.ParquetFile(path).metadata.num_rows
 
 
 def _write_catalog(path: Path, images: list[ImageRecord]) -> None:

@@ -89,6 +89,24 @@ class Database:
         return self.rpa[self.offsets[i]:self.offsets[i + 1]]
 
 
+def region_offsets(image_ids: list[str], region_image_ids: list[str]) -> np.ndarray:
+    """(N + 1,) offsets of each image's regions in a region table grouped by image in `image_ids` order.
+
+    Raises ValueError when the regions are not grouped that way (or name an unknown image)."""
+    pos = {i: k for k, i in enumerate(image_ids)}
+    owner = np.array([pos[i] for i in region_image_ids], dtype=np.int64)
+    if np.any(np.diff(owner) < 0):
+        raise ValueError("region rows are not grouped by image in the images' order")
+    return np.searchsorted(owner, np.arange(len(image_ids) + 1))
+
+
+def query_region_order(sources, scores, n: int) -> np.ndarray:
+    """The regions a query matches when re-ranking, as indices: detections first, each kind by score
+    (highest first, ties in table order), at most n."""
+    sources, scores = np.asarray(sources), np.asarray(scores, dtype=np.float64)
+    return np.lexsort((-scores, sources != "detection"))[:n]
+
+
 @dataclass
 class Retrieval:
     first: np.ndarray  # (top_n,) database indices in IPA order
