@@ -7,8 +7,9 @@
 2. Query latency on a synthetic database of 10 000 images with 100 regions each (`--dim`-d unit
    descriptors): IPA Top-50 alone, and Top-50 + RPA re-ranking with 10 query regions.
 3. First-stage search time per query against database size, 1e3 .. `--max-db` synthetic descriptors:
-   numpy exact search vs faiss IndexFlatL2 (exact) vs faiss HNSW (approximate; its recall@50 against
-   exact is printed), batches of 16 queries.
+   numpy exact search vs faiss IndexFlatL2 (exact) vs two approximate faiss indexes, HNSW (M 32, up to
+   `--hnsw-max`: its graph takes long to build) and IVF-Flat (4 sqrt(N) cells, 16 probed), with their
+   recall@50 against exact search and build times; batches of 16 queries.
 Prints the machine first, and faiss's speed as a ratio to numpy's in the same run.
 """
 
@@ -65,7 +66,7 @@ def query_latency(dim: int) -> None:
           f"+ RPA re-ranking (10 query regions) {full * 1e3:.2f} ms (x{full / plain:.1f})")
 
 
-def scaling(dim: int, max_db: int) -> None:
+def scaling(dim: int, max_db: int, hnsw_max: int) -> None:
     try:
         import faiss  # noqa: F401
 
@@ -76,7 +77,8 @@ def scaling(dim: int, max_db: int) -> None:
     rng = np.random.default_rng(1)
     queries = l2_normalize(rng.normal(size=(16, dim)))
     print(f"\nfirst-stage search, ms per query (batches of 16), {dim}-d, Top-50:")
-    print(f"{'database':>10} {'numpy exact':>12} {'faiss flat':>11} {'ratio':>6} {'faiss hnsw':>11} {'recall@50':>9}")
+    print(f"{'database':>10} {'numpy exact':>12} {'faiss flat':>11} {'ratio':>6} {'hnsw':>8} {'recall':>6} "
+          f"{'build s':>7} {'ivf':>8} {'recall':>6} {'build s':>7}")
     n = 1000
     while n <= max_db:
         x = l2_normalize(rng.normal(size=(n, dim)).astype(np.float32))
@@ -86,12 +88,21 @@ def scaling(dim: int, max_db: int) -> None:
         if have_faiss:
             flat = FaissIndex(x)
             t_flat = _timed(lambda f=flat: f.search(queries, 50), 3) / len(queries)
-            hnsw = FaissIndex(x, hnsw_m=32)
-            t_h = _timed(lambda h=hnsw: h.search(queries, 50), 3) / len(queries)
+            row += f" {t_flat * 1e3:>11.3f} {t_np / t_flat:>6.2f}"
             truth = exact.search(queries, 50)[1]
-            got = hnsw.search(queries, 50)[1]
-            recall = np.mean([len(set(a) & set(b)) / 50 for a, b in zip(truth, got, strict=True)])
-            row += f" {t_flat * 1e3:>11.3f} {t_np / t_flat:>6.2f} {t_h * 1e3:>11.3f} {recall:>9.3f}"
+            approximate = {"hnsw": {"hnsw_m": 32} if n <= hnsw_max else None,
+                           "ivf": {"ivf_lists": int(4 * np.sqrt(n))}}
+            for kwargs in approximate.values():
+                if kwargs is None:
+                    row += f" {'-':>8} {'-':>6} {'-':>7}"
+                    continue
+                t0 = time.perf_counter()
+                index = FaissIndex(x, **kwargs)
+                build = time.perf_counter() - t0
+                t_a = _timed(lambda a=index: a.search(queries, 50), 3) / len(queries)
+                got = index.search(queries, 50)[1]
+                recall = np.mean([len(set(a) & set(b)) / 50 for a, b in zip(truth, got, strict=True)])
+                row += f" {t_a * 1e3:>8.3f} {recall:>6.3f} {build:>7.1f}"
         print(row, flush=True)
         n *= 10
 
@@ -102,6 +113,7 @@ def main() -> None:
     ap.add_argument("--device", default="auto")
     ap.add_argument("--dim", type=int, default=112, help="descriptor dimension (112: EfficientNet-Lite0; 512: VGG16)")
     ap.add_argument("--max-db", type=int, default=1_000_000)
+    ap.add_argument("--hnsw-max", type=int, default=100_000, help="largest database given an HNSW graph")
     args = ap.parse_args()
     for line in machine_info():
         print(line)
@@ -109,7 +121,7 @@ def main() -> None:
     if args.model:
         extraction(args.model, args.device)
     query_latency(args.dim)
-    scaling(args.dim, args.max_db)
+    scaling(args.dim, args.max_db, args.hnsw_max)
 
 
 if __name__ == "__main__":

@@ -44,11 +44,13 @@ class ExactIndex:
 
 
 class FaissIndex:
-    """faiss (`pip install faiss-cpu`): exact `IndexFlatL2`, or HNSW for very large databases."""
+    """faiss (`pip install faiss-cpu`): exact `IndexFlatL2`; or, for very large databases, approximate:
+    HNSW (`hnsw_m` links per node) or an inverted file (`ivf_lists` k-means cells, `nprobe` visited)."""
 
     name = "faiss"
 
-    def __init__(self, vectors: np.ndarray, *, hnsw_m: int | None = None):
+    def __init__(self, vectors: np.ndarray, *, hnsw_m: int | None = None, ivf_lists: int | None = None,
+                 nprobe: int = 16):
         try:
             import faiss
         except ImportError:
@@ -56,7 +58,16 @@ class FaissIndex:
 
             raise SitelocError("retrieval.index=faiss needs faiss: pip install faiss-cpu") from None
         v = np.ascontiguousarray(vectors, dtype=np.float32)
-        self.index = faiss.IndexHNSWFlat(v.shape[1], hnsw_m) if hnsw_m else faiss.IndexFlatL2(v.shape[1])
+        if hnsw_m:
+            self.index = faiss.IndexHNSWFlat(v.shape[1], hnsw_m)
+        elif ivf_lists:
+            self.index = faiss.IndexIVFFlat(faiss.IndexFlatL2(v.shape[1]), v.shape[1], ivf_lists)
+            # k-means on a sample: faiss itself warns above 256 points per cell and gains nothing
+            sample = v[np.random.default_rng(0).choice(len(v), min(len(v), 256 * ivf_lists), replace=False)]
+            self.index.train(sample)
+            self.index.nprobe = nprobe
+        else:
+            self.index = faiss.IndexFlatL2(v.shape[1])
         self.index.add(v)
         self.hnsw = bool(hnsw_m)
         self.n = len(v)
