@@ -235,6 +235,15 @@ class RetrievalConfig(Strict):
     index: Literal["exact", "faiss"] = Field("exact", description="nearest-neighbour search of the first stage")
 
 
+class ExportConfig(Strict):
+    """`siteloc export`: the deployable bundle."""
+
+    version: str = Field("0.1.0", pattern=r"^[0-9A-Za-z][0-9A-Za-z.+_-]*$",
+                         description="bundle version: the directory is bundles/<site>-<version>")
+    parity_images: int = Field(4, ge=1, description="site images on which the ONNX detector is checked against torch")
+    archive: bool = Field(True, description="also write <site>-<version>.tar.gz beside the directory")
+
+
 class SitelocConfig(Strict):
     """The whole configuration; each stage reads its own section."""
 
@@ -246,6 +255,7 @@ class SitelocConfig(Strict):
     filter: FilterConfig = FilterConfig()
     detector: DetectorConfig = DetectorConfig()
     retrieval: RetrievalConfig = RetrievalConfig()
+    export: ExportConfig = ExportConfig()
 
 
 def format_validation_error(source: str, err: ValidationError, root: type[BaseModel] | None = None) -> str:

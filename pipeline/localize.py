@@ -3,8 +3,10 @@
 Input: a dataset directory as `ingest` or `ingest-log` writes it (map.yaml + runs/<run>.parquet, and
 site.yaml for the laser mount when present). For each run and trial (trial t uses filter seed + t) the
 filter starts as `init` says: `uniform` (global localization), `pose` (at the first ground-truth pose),
-or `candidates` (weighted candidate poses, 4:3:2:1: simulated from ground truth until image retrieval
-provides them, and injected again each step while the filter is lost). `kidnap_at` adds kidnappings by
+`candidates` (weighted candidate poses, 4:3:2:1, simulated from ground truth and injected again each
+step while the filter is lost), or `retrieval`: the thin runtime of a deployable bundle
+(`Localizer.from_bundle`) with the runs' camera frames: the Top-4 of the first image seed the filter
+and the Top-4 of the current image are injected while it is lost. `kidnap_at` adds kidnappings by
 teleporting (`evaluation.replay.teleport`); runs that already flag kidnappings keep theirs.
 
 Writes `estimates.parquet` (per step), `metrics.json` (per run and trial, and a summary), figures in
@@ -25,7 +27,7 @@ from pipeline.io import tables
 from pipeline.io.atomic import atomic_dir, write_text_atomic
 from pipeline.io.map_yaml import read_map
 
-INITS = ("uniform", "pose", "candidates")
+INITS = ("uniform", "pose", "candidates", "retrieval")
 
 
 def _mount(data: Path) -> tuple[float, float, float]:
@@ -92,6 +94,26 @@ def replay_one(run, lmap, fcfg, mount, init: str, trial: int) -> dict:
     return out
 
 
+def replay_bundle(run, loc, data: Path, trial: int) -> dict:
+    """Replay `run` through a bundle's Localizer with the run's camera frames (in `data`)."""
+    if run.image_ids is None:
+        raise InputError(f"{run.name}: no camera frames", [Problem(run.name, "--init retrieval needs image_id per step",
+                                                                   fix="use a run recorded with a camera")])
+    loc.reset(seed=loc.filter_config.seed + trial)
+    out = {k: [] for k in ("pose", "cov", "state", "particles", "updated", "best", "ms")}
+    for t in range(len(run)):
+        image = data / run.image_ids[t] if run.image_ids[t] else None
+        t0 = time.perf_counter()
+        e = loc.update(run.odom[t], run.ranges[t], image=image)
+        out["ms"].append((time.perf_counter() - t0) * 1000.0)
+        for key, value in (("pose", e.pose), ("cov", e.covariance), ("state", e.state), ("particles", e.n_particles),
+                           ("updated", e.updated), ("best", e.best_likelihood)):
+            out[key].append(value)
+    out = {k: (v if k == "state" else np.array(v)) for k, v in out.items()}
+    out["final_particles"] = loc.filter.particles.copy()
+    return out
+
+
 def run_localize(
     cfg: SitelocConfig,
     *,
@@ -102,6 +124,7 @@ def run_localize(
     trials: int = 1,
     kidnap_at: list[int] | None = None,
     kidnap_min_jump_m: float = 10.0,
+    bundle: Path | None = None,
     force: bool = False,
     progress: bool = True,
 ) -> Path:
@@ -114,6 +137,16 @@ def run_localize(
 
     if init not in INITS:
         raise ValueError(f"init must be one of {INITS}, got '{init}'")
+    if (init == "retrieval") != (bundle is not None):
+        from pipeline.errors import ConfigError
+
+        raise ConfigError("--init retrieval and --bundle go together: the bundle's detector and database "
+                          "turn the runs' camera frames into candidate poses")
+    loc = None
+    if bundle is not None:
+        from pipeline.runtime.localizer import Localizer
+
+        loc = Localizer.from_bundle(Path(bundle), seed=cfg.filter.seed)
     data, out = Path(inputs["data"]), Path(outputs["out"])
     occ = read_map(data / "map.yaml")
     lmap = LaserMap.from_occupancy(occ, cfg.filter.sensor.max_distance)
@@ -131,7 +164,8 @@ def run_localize(
         for run, trial in progress_bar(jobs, desc="replaying", unit="replay", enabled=progress):
             if kidnap_at:
                 run = teleport(run, kidnap_at, kidnap_min_jump_m, seed=cfg.filter.seed + 1000 * trial)
-            rep = replay_one(run, lmap, cfg.filter, mount, init, trial)
+            rep = (replay_bundle(run, loc, data, trial) if loc is not None
+                   else replay_one(run, lmap, cfg.filter, mount, init, trial))
             pose = rep["pose"]
             kid = np.nonzero(run.kidnapped)[0].tolist()
             if run.gt is not None:
@@ -170,7 +204,8 @@ def run_localize(
         summary = _summary(per_run)
         doc = {"init": init, "method": cfg.filter.method, "sensor_model": cfg.filter.sensor.model,
                "candidates": ("simulated from ground truth: the true pose (0.5 m, 10 deg noise) among random "
-                              "free-space decoys, random rank, injected while lost") if init == "candidates" else None,
+                              "free-space decoys, random rank, injected while lost") if init == "candidates" else
+               (f"image retrieval with the bundle {bundle}" if loc is not None else None),
                "trials": trials, "kidnap_at": kidnap_at or [], "summary": summary, "runs": per_run}
         write_text_atomic(tmp / "metrics.json", json.dumps(doc, indent=2) + "\n")
         write_effective_config(cfg, tmp, stage="localize", inputs={"data": data})

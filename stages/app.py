@@ -8,6 +8,7 @@ from stages import (
     config_cmd,
     demo,
     evaluate_detector,
+    export,
     ingest,
     ingest_log,
     localize,
@@ -40,6 +41,7 @@ app.command("extract", help=help_text(retrieval.EXTRACT_HELP))(retrieval.extract
 app.command("build-index", help=help_text(retrieval.INDEX_HELP))(retrieval.build_index)
 app.command("query", help=help_text(retrieval.QUERY_HELP))(retrieval.query)
 app.command("evaluate-retrieval", help=help_text(retrieval.EVALUATE_HELP))(retrieval.evaluate_retrieval)
+app.command("export", help=help_text(export.HELP))(export.export)
 app.command("localize", help=help_text(localize.HELP))(localize.localize)
 app.command("demo", help=help_text(demo.HELP))(demo.demo)
 app.add_typer(config_cmd.app, name="config")

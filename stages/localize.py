@@ -21,6 +21,9 @@ filter.seed + t). The filter starts as --init says:
   candidates  weighted candidate poses (4:3:2:1 for four), as image retrieval will give them; here they
               are simulated from the ground truth (the true pose with 0.5 m / 10 deg noise among random
               decoys, in random order) and injected again each step while the filter is lost
+  retrieval   the deployable bundle given by --bundle (`siteloc export`), as the robot runs it: the
+              first camera frame's Top-4 retrieved poses seed the filter, the current frame's are
+              injected while the filter is lost; the filter settings are the bundle's (filter.yaml)
 
 --kidnap-at 300 --kidnap-at 700 teleports the robot at those steps to a far part of the run while its
 odometry carries on unaware; runs that already flag kidnappings (the reference site's query runs) keep them.
@@ -44,12 +47,15 @@ def localize(
     run: Annotated[
         list[str] | None, typer.Option("--run", "-r", help="Replay only this run (repeatable) [default: all].")
     ] = None,
-    init: Annotated[str, typer.Option("--init", help="uniform, pose or candidates.")] = "uniform",
+    init: Annotated[str, typer.Option("--init", help="uniform, pose, candidates or retrieval.")] = "uniform",
     trials: Annotated[int, typer.Option("--trials", min=1, help="Replays per run, with seeds seed..seed+N-1.")] = 1,
     kidnap_at: Annotated[
         list[int] | None, typer.Option("--kidnap-at", help="Teleport the robot at this step (repeatable).")
     ] = None,
     kidnap_min_jump: Annotated[float, typer.Option(help="A teleport moves at least this far, m.")] = 10.0,
+    bundle: Annotated[
+        Path | None, typer.Option("--bundle", "-b", help="A bundle from `siteloc export` (implies --init retrieval).")
+    ] = None,
     config: ConfigOpt = "demo",
     set_: SetOpt = None,
     force: ForceOpt = False,
@@ -61,11 +67,13 @@ def localize(
         from pipeline.errors import ConfigError
         from pipeline.localize import INITS, run_localize
 
+        if bundle is not None and init == "uniform":
+            init = "retrieval"
         if init not in INITS:
             raise ConfigError(f"--init must be one of {', '.join(INITS)}; got '{init}'")
         cfg = load(config, set_)
         result = run_localize(cfg, inputs={"data": data}, outputs={"out": out}, runs=run, init=init, trials=trials,
-                              kidnap_at=kidnap_at, kidnap_min_jump_m=kidnap_min_jump, force=force,
+                              kidnap_at=kidnap_at, kidnap_min_jump_m=kidnap_min_jump, bundle=bundle, force=force,
                               progress=sys.stderr.isatty())
         doc = json.loads((result / "metrics.json").read_text())
         from rich.console import Console

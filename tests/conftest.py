@@ -7,8 +7,44 @@ afresh (more examples, random seed) when hunting for edge cases locally.
 
 import os
 
+import pytest
 from hypothesis import settings
 
 settings.register_profile("default", derandomize=True, print_blob=True)
 settings.register_profile("explore", max_examples=2000, derandomize=False, print_blob=True)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
+
+
+MICRO_SETS = ["detector.weights=null", "detector.iterations=4", "retrieval.chunk=16", "retrieval.rpa_proposals=20"]
+
+
+@pytest.fixture(scope="session")
+def micro_site(tmp_path_factory):
+    """(config, ingest dir, detector dir) of the CI micro reference site with a barely trained detector."""
+    from pipeline.config import load_config
+    from pipeline.sitegen.render import egl_available
+
+    if not egl_available():
+        pytest.skip("no headless EGL context for the reference site")
+    from pipeline.detection.train import run_train_detector
+    from pipeline.ingest import run_ingest
+    from pipeline.sitegen.presets import load_site_preset
+    from pipeline.sitegen.synth import run_synth
+
+    cfg = load_config("ci", MICRO_SETS)
+    root = tmp_path_factory.mktemp("micro")
+    preset = load_site_preset(cfg.synth.site, cfg.synth.preset_overrides)
+    synth = run_synth(preset, outputs={"out": root / "site"}, seed=cfg.synth.seed, progress=False)
+    ing = run_ingest(cfg, inputs={"site": synth}, outputs={"out": root / "ing"}, progress=False)
+    model = run_train_detector(cfg, inputs={"data": ing}, outputs={"out": root / "det"}, progress=False)
+    return cfg, ing, model
+
+
+@pytest.fixture(scope="session")
+def micro_extraction(micro_site, tmp_path_factory):
+    """`siteloc extract` of the micro site."""
+    from pipeline.retrieval.extract import run_extract
+
+    cfg, ing, model = micro_site
+    return run_extract(cfg, inputs={"model": model, "data": ing}, outputs={"out": tmp_path_factory.mktemp("x") / "d"},
+                       progress=False)

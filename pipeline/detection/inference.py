@@ -133,20 +133,10 @@ def detector_features(det: TrainedDetector, images: list[torch.Tensor], *,
 
 
 def region_max(fmap: torch.Tensor, boxes: np.ndarray, stride: float) -> np.ndarray:
-    """(K, C): per box (resized-image pixels), each channel's maximum over the cells the box touches.
+    """`pipeline.retrieval.descriptors.region_max` of a torch map (one implementation for torch and ONNX)."""
+    from pipeline.retrieval.descriptors import region_max as region_max_np
 
-    A cell [k * stride, (k + 1) * stride) is touched when the box overlaps it; boxes are clipped to the
-    map (which covers the image, not the padding), and a box too thin to cover a cell still gets one.
-    """
-    h, w = fmap.shape[-2:]
-    out = np.empty((len(boxes), fmap.shape[0]), dtype=np.float32)
-    for k, (x1, y1, x2, y2) in enumerate(np.asarray(boxes, dtype=np.float64).reshape(-1, 4)):
-        c0 = min(max(int(np.floor(x1 / stride)), 0), w - 1)
-        r0 = min(max(int(np.floor(y1 / stride)), 0), h - 1)
-        c1 = min(max(int(np.ceil(x2 / stride)), c0 + 1), w)
-        r1 = min(max(int(np.ceil(y2 / stride)), r0 + 1), h)
-        out[k] = fmap[:, r0:r1, c0:c1].amax(dim=(1, 2)).numpy()
-    return out
+    return region_max_np(fmap.detach().float().cpu().numpy(), boxes, stride)
 
 
 def load_image(path: Path) -> torch.Tensor:

@@ -32,6 +32,7 @@ class ReplayRun:
     angle_increment: float
     range_max: float
     kidnapped: np.ndarray  # (T,) bool
+    image_ids: tuple[str | None, ...] | None = None  # the camera frame of each step, relative to the dataset
 
     def __len__(self) -> int:
         return len(self.odom)
@@ -60,6 +61,7 @@ def load_run(path: Path) -> ReplayRun:
         angle_increment=float(cols["angle_increment"][0]),
         range_max=float(cols["range_max"][0]),
         kidnapped=kidnapped,
+        image_ids=tuple(cols["image_id"]) if "image_id" in cols else None,
     )
 
 
@@ -95,7 +97,9 @@ def teleport(run: ReplayRun, at: list[int], min_jump_m: float, seed: int) -> Rep
         else:
             d = odometry_delta(run.odom[src[t - 1]], run.odom[src[t]])
             odom[t] = compose_odometry(odom[t - 1], *d)
-    return replace(run, odom=odom, gt=run.gt[src], ranges=run.ranges[src], kidnapped=jumps | run.kidnapped[src])
+    images = None if run.image_ids is None else tuple(run.image_ids[i] for i in src)  # the camera teleports too
+    return replace(run, odom=odom, gt=run.gt[src], ranges=run.ranges[src], kidnapped=jumps | run.kidnapped[src],
+                   image_ids=images)
 
 
 def simulated_candidates(gt_pose: np.ndarray, lmap, n: int, rng: np.random.Generator, std_xy: float = 0.5,

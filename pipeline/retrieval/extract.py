@@ -25,6 +25,7 @@ import numpy as np
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem, SitelocError
 from pipeline.io import tables
+from pipeline.retrieval.descriptors import ImageDescriptors, describe_outputs, ipa_descriptor  # noqa: F401
 
 
 @dataclass(frozen=True)
@@ -52,44 +53,14 @@ def site_images(ingested: Path, *, include_runs: bool) -> list[ImageRecord]:
     return out
 
 
-def ipa_descriptor(feature_map) -> np.ndarray:
-    """Sum pooling of a (C, h, w) map over positions, l2-normalised."""
-    from pipeline.retrieval.whitening import l2_normalize
-
-    return l2_normalize(np.asarray(feature_map, dtype=np.float32).sum(axis=(1, 2)))
-
-
-@dataclass
-class ImageDescriptors:
-    ipa: np.ndarray  # (C,) l2-normalised sum pooling
-    boxes: np.ndarray  # (K, 4) regions in original pixels: proposals first, then detections
-    meta: list[tuple[str, float, int]]  # (source, score, class id) per region
-    rpa: np.ndarray  # (K, C) l2-normalised region max pooling
-
-    def query_rows(self, n: int) -> np.ndarray:
-        """The regions a query matches when re-ranking: detections first (by score), then proposals."""
-        from pipeline.retrieval.search import query_region_order
-
-        return query_region_order([m[0] for m in self.meta], [m[1] for m in self.meta], n)
-
-
 def describe(det, images: list, rpa_proposals: int, rpa_min_score: float) -> list[ImageDescriptors]:
     """IPA and RPA descriptors of a batch of (3, H, W) images in [0, 1] from one detector pass."""
     from pipeline.detection.builders import STRIDE
-    from pipeline.detection.inference import detector_features, region_max
-    from pipeline.retrieval.whitening import l2_normalize
+    from pipeline.detection.inference import detector_features
 
-    out = []
-    for f in detector_features(det, images):  # regions are chosen from its output, pooled from its maps
-        top = np.argsort(-f.proposal_scores, kind="stable")[:rpa_proposals]
-        keep = f.scores >= rpa_min_score
-        boxes = np.vstack([f.proposals[top], f.boxes[keep]]).astype(np.float32)
-        meta = [("proposal", float(s), 0) for s in f.proposal_scores[top]]
-        meta += [("detection", float(s), int(c)) for s, c in zip(f.scores[keep], f.labels[keep], strict=True)]
-        sy, sx = f.scale
-        regions = region_max(f.feature_map, boxes * np.float32([sx, sy, sx, sy]), STRIDE)
-        out.append(ImageDescriptors(ipa_descriptor(f.feature_map), boxes, meta, l2_normalize(regions)))
-    return out
+    return [describe_outputs(f.feature_map.numpy(), f.scale, STRIDE, f.proposals, f.proposal_scores, f.boxes,
+                             f.scores, f.labels, rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score)
+            for f in detector_features(det, images)]
 
 
 def _fingerprint(model_dir: Path, images: list[ImageRecord], settings: dict) -> str:

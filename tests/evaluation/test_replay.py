@@ -34,6 +34,10 @@ def test_teleport_jumps_truth_not_odometry():
     ok[[49, 119]] = False
     np.testing.assert_allclose(trans[ok], gt_trans[ok], atol=1e-9)
     np.testing.assert_array_equal(teleport(run, [50, 120], 10.0, seed=3).gt, k.gt)
+    from dataclasses import replace
+
+    framed = teleport(replace(run, image_ids=tuple(f"f{i}.png" for i in range(len(run)))), [50, 120], 10.0, seed=3)
+    assert list(framed.image_ids) == [f"f{i}.png" for i in src]  # each step keeps the frame of its place
 
 
 def test_teleport_refuses_what_it_cannot_do():

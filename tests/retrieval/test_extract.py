@@ -12,35 +12,21 @@ from pipeline.config import load_config
 from pipeline.errors import SitelocError
 from pipeline.io import tables
 from pipeline.sitegen.render import egl_available
+from tests.conftest import MICRO_SETS
 
 pytestmark = pytest.mark.skipif(not egl_available(), reason="no headless EGL context for the reference site")
 
-SETS = ["detector.weights=null", "detector.iterations=4", "retrieval.chunk=16", "retrieval.rpa_proposals=20"]
+SETS = MICRO_SETS
 
 
 @pytest.fixture(scope="module")
-def site(tmp_path_factory):
-    from pipeline.detection.train import run_train_detector
-    from pipeline.ingest import run_ingest
-    from pipeline.sitegen.presets import load_site_preset
-    from pipeline.sitegen.synth import run_synth
-
-    cfg = load_config("ci", SETS)
-    root = tmp_path_factory.mktemp("retrieval")
-    preset = load_site_preset(cfg.synth.site, cfg.synth.preset_overrides)
-    synth = run_synth(preset, outputs={"out": root / "site"}, seed=cfg.synth.seed, progress=False)
-    ing = run_ingest(cfg, inputs={"site": synth}, outputs={"out": root / "ing"}, progress=False)
-    model = run_train_detector(cfg, inputs={"data": ing}, outputs={"out": root / "det"}, progress=False)
-    return cfg, ing, model
+def site(micro_site):
+    return micro_site
 
 
 @pytest.fixture(scope="module")
-def extracted(site, tmp_path_factory):
-    from pipeline.retrieval.extract import run_extract
-
-    cfg, ing, model = site
-    return run_extract(cfg, inputs={"model": model, "data": ing}, outputs={"out": tmp_path_factory.mktemp("x") / "d"},
-                       progress=False)
+def extracted(micro_extraction):
+    return micro_extraction
 
 
 def test_tables_hold_unit_descriptors_for_every_image(site, extracted):

@@ -1,0 +1,157 @@
+"""Stage `export`: the deployable bundle `bundles/<site>-<version>/` (and its `.tar.gz`).
+
+Inputs: the ingest (map, site.yaml: laser geometry and camera), the trained detector and the retrieval
+database of `build-index`. The detector goes to ONNX (`pipeline.detection.onnx_export`) and is checked
+against torch on `export.parity_images` of the site's images before anything is published; the
+database files are copied as they are (whitened, float32); `filter.yaml` carries the filter, retrieval
+and laser settings the runtime needs; `manifest.json` is written last with every file's sha256 and size.
+The layout and the checks the runtime makes are in `pipeline.runtime.bundle`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import tarfile
+from datetime import UTC, datetime
+from pathlib import Path
+
+import yaml
+
+from pipeline import __version__
+from pipeline.config import SitelocConfig
+from pipeline.errors import InputError, Problem
+from pipeline.runtime.bundle import MANIFEST, SCHEMA_VERSION, sha256_of
+
+DB_FILES = ("database_ipa.parquet", "database_rpa.parquet", "catalog.parquet", "report.json")
+OPTIONAL_DB_FILES = ("ipa_whitening.npz", "rpa_whitening.npz", "config.yaml")
+
+
+def _require(paths: list[Path], fix: str) -> None:
+    missing = [p for p in paths if not p.is_file()]
+    if missing:
+        raise InputError(f"{missing[0].parent}: {len(missing)} required files missing",
+                         [Problem(str(p), "file is missing", fix=fix) for p in missing])
+
+
+def code_version() -> str:
+    """The package version, with the git commit when the code runs from a checkout."""
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], capture_output=True, text=True, timeout=5,
+                                cwd=Path(__file__).resolve().parent, check=True).stdout.strip()
+        return f"{__version__}+g{commit}" if commit else __version__
+    except (OSError, subprocess.SubprocessError):
+        return __version__
+
+
+def _created() -> str:
+    """UTC now, or SOURCE_DATE_EPOCH when set (reproducible builds)."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    when = datetime.fromtimestamp(int(epoch), UTC) if epoch else datetime.now(UTC)
+    return when.strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def laser_settings(data: Path) -> dict:
+    """The laser geometry and mount: site.yaml when the ingest has one, else the first run's scans."""
+    import math
+
+    if (data / "site.yaml").is_file():
+        from pipeline.io.site import read_site
+
+        laser = read_site(data / "site.yaml").laser
+        return {"angle_min": laser.angle_min, "angle_increment": laser.angle_increment, "range_max": laser.range_max,
+                "base_from_laser": [laser.mount.x, laser.mount.y, math.radians(laser.mount.yaw_deg)]}
+    runs = sorted((data / "runs").glob("*.parquet"))
+    if not runs:
+        raise InputError(f"{data}: no laser geometry", [Problem(str(data / "site.yaml"), "neither site.yaml nor runs",
+                                                                fix="point --data at the output of `siteloc ingest`")])
+    from pipeline.io import tables
+
+    t = tables.read_table(runs[0], "runs").slice(0, 1).to_pydict()
+    return {"angle_min": float(t["angle_min"][0]), "angle_increment": float(t["angle_increment"][0]),
+            "range_max": float(t["range_max"][0]), "base_from_laser": [0.0, 0.0, 0.0]}
+
+
+def write_manifest(root: Path, meta: dict) -> Path:
+    """manifest.json listing every other file of `root` with sha256 and size; written last, atomically."""
+    from pipeline.io.atomic import write_text_atomic
+
+    files = {}
+    for p in sorted(q for q in root.rglob("*") if q.is_file() and q.name != MANIFEST):
+        files[p.relative_to(root).as_posix()] = {"sha256": sha256_of(p), "size": p.stat().st_size}
+    doc = {"schema_version": SCHEMA_VERSION, **meta, "files": files}
+    return write_text_atomic(root / MANIFEST, json.dumps(doc, indent=2, sort_keys=False) + "\n")
+
+
+def _archive(bundle: Path) -> Path:
+    from pipeline.io.atomic import atomic_file
+
+    target = bundle.with_name(bundle.name + ".tar.gz")
+    with atomic_file(target, "wb") as fh, tarfile.open(fileobj=fh, mode="w:gz") as tar:
+        tar.add(bundle, arcname=bundle.name, filter=lambda m: m.replace(uid=0, gid=0, uname="", gname="", deep=False))
+    return target
+
+
+def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path], force: bool = False,
+               progress: bool = True) -> Path:
+    """Write `<out>/<site>-<version>/` (+ .tar.gz); returns the bundle directory."""
+    from pipeline.detection.inference import load_detector, load_image
+    from pipeline.detection.onnx_export import check_parity, export_describer
+    from pipeline.errors import OutputExistsError
+    from pipeline.io import tables
+    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.map_yaml import read_map, write_map
+
+    data, model, index = Path(inputs["data"]), Path(inputs["model"]), Path(inputs["index"])
+    _require([data / "map.yaml"], "point --data at the output of `siteloc ingest`")
+    _require([model / "weights.safetensors", model / "config.json"], "point MODEL at `siteloc train-detector`'s output")
+    _require([index / f for f in DB_FILES], "point INDEX at `siteloc build-index`'s output")
+    site = data.name
+    if (data / "site.yaml").is_file():
+        from pipeline.io.site import read_site
+
+        site = read_site(data / "site.yaml").name
+    name = f"{site}-{cfg.export.version}"
+    out = Path(outputs["out"]) / name
+    if out.exists() and not force:
+        raise OutputExistsError(out)
+    catalog = tables.read_table(index / "catalog.parquet", "catalog").column("image_id").to_pylist()
+    probe = [data / i for i in catalog[:: max(1, len(catalog) // cfg.export.parity_images)][: cfg.export.parity_images]]
+    _require(probe, "the database's images must be in the ingest --data points at")
+    images = [load_image(p) for p in probe]
+    image_hw = tuple(int(v) for v in images[0].shape[-2:])
+    det = load_detector(model, device="cpu")
+    db_report = json.loads((index / "report.json").read_text())
+    r = cfg.retrieval
+    with atomic_dir(out, force=force) as tmp:
+        (tmp / "map").mkdir()
+        write_map(tmp / "map" / "map.yaml", read_map(data / "map.yaml"), "map.pgm")
+        (tmp / "db").mkdir()
+        for f in DB_FILES + OPTIONAL_DB_FILES:
+            if (index / f).is_file():
+                shutil.copyfile(index / f, tmp / "db" / f)
+        (tmp / "models").mkdir()
+        meta = export_describer(det, image_hw, tmp / "models" / "describer.onnx")
+        meta.update(rpa_proposals=r.rpa_proposals, rpa_min_score=r.rpa_min_score,
+                    backbone=det.config["builder"]["backbone"],
+                    classes=det.config.get("classes"))
+        meta["parity"] = check_parity(det, tmp / "models" / "describer.onnx", meta, images,
+                                      rpa_proposals=r.rpa_proposals, rpa_min_score=r.rpa_min_score)
+        write_text_atomic(tmp / "models" / "describer.json", json.dumps(meta, indent=2) + "\n")
+        settings = {"filter": cfg.filter.model_dump(mode="json"),
+                    "retrieval": {"top_n": r.top_n, "rerank": r.rerank, "query_regions": r.query_regions,
+                                  "candidate_weights": list(r.candidate_weights)},
+                    "laser": laser_settings(data), "camera": {"height": image_hw[0], "width": image_hw[1]}}
+        write_text_atomic(tmp / "filter.yaml", yaml.safe_dump(settings, sort_keys=False))
+        lock = Path.cwd() / "dvc.lock"
+        write_manifest(tmp, {
+            "bundle_version": cfg.export.version, "site": site, "created": _created(), "code_version": code_version(),
+            "dvc_lock_sha256": sha256_of(lock) if lock.is_file() else None,
+            "database": {"images": db_report.get("images"), "regions": db_report.get("regions"),
+                         "whitening": db_report.get("whitening")},
+            "inputs": {k: str(v) for k, v in inputs.items()}, "config": cfg.model_dump(mode="json")})
+    if cfg.export.archive:
+        _archive(out)
+    return out

@@ -1,0 +1,50 @@
+"""A camera image to IPA and RPA descriptors through the bundle's ONNX detector (onnxruntime, no torch)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.retrieval.descriptors import ImageDescriptors, describe_outputs
+from pipeline.runtime.bundle import BundleError
+
+OUTPUTS = ("feature_map", "proposals", "proposal_scores", "boxes", "scores", "labels")
+
+
+def image_array(image) -> np.ndarray:
+    """(3, H, W) float32 in [0, 1] from a path, an (H, W, 3) uint8 RGB array or a (3, H, W) float array."""
+    if isinstance(image, (str, Path)):
+        from PIL import Image
+
+        with Image.open(image) as im:
+            image = np.asarray(im.convert("RGB"))
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[-1] == 3 and a.dtype == np.uint8:
+        return np.ascontiguousarray(a.transpose(2, 0, 1), dtype=np.float32) / 255.0
+    if a.ndim == 3 and a.shape[0] == 3:
+        return np.ascontiguousarray(a, dtype=np.float32)
+    raise ValueError(f"an image must be (H, W, 3) uint8 RGB or (3, H, W) float in [0, 1], got {a.shape} {a.dtype}")
+
+
+class OnnxDescriber:
+    def __init__(self, onnx_path: Path, meta_path: Path, *, threads: int | None = None):
+        import onnxruntime as ort
+
+        self.meta = json.loads(Path(meta_path).read_text())
+        options = ort.SessionOptions()
+        if threads:
+            options.intra_op_num_threads = threads
+        self.session = ort.InferenceSession(str(onnx_path), options, providers=["CPUExecutionProvider"])
+        self.image_hw = tuple(self.meta["image_hw"])
+
+    def describe(self, image) -> ImageDescriptors:
+        x = image_array(image)
+        if tuple(x.shape[1:]) != self.image_hw:
+            raise BundleError(f"camera image of {x.shape[2]} x {x.shape[1]} px; this bundle's detector was exported "
+                              f"for {self.image_hw[1]} x {self.image_hw[0]} (the site camera): resize the image "
+                              f"or export a bundle for this camera")
+        out = self.session.run(list(OUTPUTS), {"image": x})
+        return describe_outputs(out[0], tuple(self.meta["scale"]), self.meta["stride"], *out[1:],
+                                rpa_proposals=self.meta["rpa_proposals"], rpa_min_score=self.meta["rpa_min_score"])

@@ -1,0 +1,137 @@
+"""The thin runtime: a verified bundle in, poses out, from odometry, laser scans and camera images.
+
+    loc = Localizer.from_bundle("bundles/office-0.1.0")
+    est = loc.update(odometry, scan, image=None)   # -> Estimate(pose, covariance, state, n_particles, ...)
+
+numpy, scipy, pyarrow and onnxruntime only: importing this module never imports torch (a test checks).
+Seed 000's closed loop: at start, the first camera image is described (ONNX detector -> IPA + RPA),
+retrieved against the bundle's database (IPA Top-N, RPA re-ranking) and its Top-4 poses, weighted
+4:3:2:1, seed the adaptive MCL; without an image the filter starts uniform over the free space. Whenever
+the filter declares itself lost and an image comes with the update, particles are injected around the
+image's Top-4 (`filter.inject_particles` per step, the paper's 1000).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from pipeline.runtime.bundle import BundleError, open_bundle
+
+
+@dataclass(frozen=True)
+class Estimate:
+    pose: np.ndarray  # (3,) map_from_base x, y, theta (radians)
+    covariance: np.ndarray  # (3, 3)
+    state: str  # tracking | lost | relocalising
+    n_particles: int
+    updated: bool  # False when the filter held the update back (not enough travel)
+    candidates: np.ndarray | None  # (K, 4) x, y, theta, weight when retrieval ran this step
+    best_likelihood: float  # per-beam relative likelihood of the best particle, (0, 1]
+
+
+@dataclass(frozen=True)
+class LaserGeometry:
+    angle_min: float
+    angle_increment: float
+    range_max: float
+    base_from_laser: tuple[float, float, float]
+
+
+class Localizer:
+    def __init__(self, root: Path, manifest: dict, settings: dict, *, seed: int | None = None,
+                 describer_threads: int | None = None):
+        from pipeline.config import FilterConfig
+        from pipeline.io.map_yaml import read_map
+        from pipeline.retrieval.database import load_database
+        from pipeline.runtime.describer import OnnxDescriber
+        from pipeline.runtime.grid import LaserMap
+
+        self.root, self.manifest, self.settings = root, manifest, settings
+        fcfg = FilterConfig.model_validate(settings["filter"])
+        if seed is not None:
+            fcfg = fcfg.model_copy(update={"seed": seed})
+        las = settings["laser"]
+        self.laser = LaserGeometry(las["angle_min"], las["angle_increment"], las["range_max"],
+                                   tuple(las["base_from_laser"]))
+        self.occupancy = read_map(root / "map" / "map.yaml")
+        self.map = LaserMap.from_occupancy(self.occupancy, fcfg.sensor.max_distance)
+        self.filter_config = fcfg
+        self.reset()
+        self.database = load_database(root / "db")
+        self.describer = OnnxDescriber(root / "models" / "describer.onnx", root / "models" / "describer.json",
+                                       threads=describer_threads)
+        self.retrieval = settings["retrieval"]
+
+    def reset(self, seed: int | None = None) -> None:
+        """Forget the robot's pose: the next update starts afresh (a new filter, seeded `seed` if given)."""
+        from pipeline.runtime.amcl import AdaptiveMCL
+
+        if seed is not None:
+            self.filter_config = self.filter_config.model_copy(update={"seed": seed})
+        self.filter = AdaptiveMCL(self.map, self.filter_config, range_max=self.laser.range_max,
+                                  base_from_laser=self.laser.base_from_laser)
+        self.started = False
+        self.seeded_by_retrieval = False
+
+    @classmethod
+    def from_bundle(cls, path: Path, *, seed: int | None = None, workdir: Path | None = None,
+                    describer_threads: int | None = None) -> Localizer:
+        """Verify every file of the bundle (directory or .tar.gz), then load it."""
+        root = open_bundle(Path(path), workdir)
+        from pipeline.runtime.bundle import read_manifest
+
+        manifest = read_manifest(root)
+        try:
+            settings = yaml.safe_load((root / "filter.yaml").read_text())
+        except yaml.YAMLError as exc:
+            raise BundleError(f"{root / 'filter.yaml'}: not valid YAML ({exc}); export the bundle again") from None
+        for key in ("filter", "retrieval", "laser"):
+            if not isinstance(settings, dict) or key not in settings:
+                raise BundleError(f"{root / 'filter.yaml'}: no '{key}' section; export the bundle again")
+        return cls(root, manifest, settings, seed=seed, describer_threads=describer_threads)
+
+    def candidates(self, image) -> np.ndarray:
+        """(K, 4) x, y, theta, weight: the image's Top-K poses after IPA retrieval and RPA re-ranking."""
+        from pipeline.retrieval.database import query_database
+
+        d = self.describer.describe(image)
+        r = self.retrieval
+        regions = d.rpa[d.query_rows(r["query_regions"])]
+        found = query_database(self.database, d.ipa, regions, top_n=r["top_n"],
+                               weights=tuple(r["candidate_weights"]), rerank=r.get("rerank", True))
+        return found.candidates
+
+    def scan(self, ranges) -> object:
+        from pipeline.runtime.sensor import Scan
+
+        return Scan(np.asarray(ranges, dtype=np.float64), self.laser.angle_min, self.laser.angle_increment,
+                    self.laser.range_max)
+
+    def update(self, odometry, scan, image=None) -> Estimate:
+        """One step: odometry (x, y, theta in the odometry frame), a scan (a `Scan`, or ranges in the
+        bundle's laser geometry, or None) and optionally the camera image at this step."""
+        from pipeline.runtime.amcl import FilterState
+        from pipeline.runtime.sensor import Scan
+
+        if scan is not None and not isinstance(scan, Scan):
+            scan = self.scan(scan)
+        cands = None
+        if not self.started:
+            if image is not None:
+                cands = self.candidates(image)
+                self.filter.init_candidates(cands[:, :3], cands[:, 3])
+                self.seeded_by_retrieval = True
+            else:
+                self.filter.init_uniform()
+            self.started = True
+        elif image is not None and (self.filter.state == FilterState.LOST or not self.seeded_by_retrieval):
+            cands = self.candidates(image)
+            self.filter.inject(cands[:, :3], cands[:, 3])
+            self.seeded_by_retrieval = True
+        res = self.filter.update(odometry, scan)
+        return Estimate(res.pose, res.covariance, res.state.value, res.particles, res.updated, cands,
+                        res.best_likelihood)

@@ -1,0 +1,54 @@
+"""`siteloc export`: the deployable bundle a robot loads."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, echo_path, load
+
+HELP = """Write the deployable bundle: bundles/<site>-<version>/ and its .tar.gz.
+
+MODEL is the output of `siteloc train-detector`, INDEX of `siteloc build-index`, DATA the ingested
+site (map, laser geometry, camera). The bundle holds the map (ROS map_server YAML + PGM), the whitened
+database descriptors and poses (Parquet) with the whitening arrays (npz), the detector as ONNX (image ->
+stride-16 map, proposals, detections; checked against torch on export.parity_images of the site's
+images, tolerances in models/describer.json), filter.yaml (filter, retrieval and laser settings) and
+manifest.json, written last: schema and bundle versions, site, creation time, code version, effective
+config, the dvc.lock hash and every file's sha256 and size. The runtime (`Localizer.from_bundle`)
+refuses a bundle whose files do not match it.
+
+Example: siteloc export models/office/detector data/office/index data/office/ingested --out bundles
+"""
+
+
+def export(
+    model: Annotated[Path, typer.Argument(help="A trained detector.", show_default=False)],
+    index: Annotated[Path, typer.Argument(help="The retrieval database (build-index).", show_default=False)],
+    data: Annotated[Path, typer.Argument(help="The ingested site.", show_default=False)],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Directory the bundle goes into.")] = Path("bundles"),
+    version: Annotated[str | None, typer.Option("--version", help="Bundle version [default: export.version].")] = None,
+    config: ConfigOpt = "demo",
+    set_: SetOpt = None,
+    force: ForceOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    with cli_errors(verbose):
+        import json
+
+        from pipeline.bundle.export import run_export
+
+        cfg = load(config, (set_ or []) + ([f"export.version={json.dumps(version)}"] if version else []))  # a string
+        bundle = run_export(cfg, inputs={"model": model, "index": index, "data": data}, outputs={"out": out},
+                            force=force)
+        manifest = json.loads((bundle / "manifest.json").read_text())
+        parity = json.loads((bundle / "models" / "describer.json").read_text())["parity"]["max_differences"]
+        size = sum(e["size"] for e in manifest["files"].values())
+        typer.echo(f"{len(manifest['files'])} files, {size / 2**20:.1f} MiB; ONNX vs torch: map "
+                   f"{parity['feature_map_abs']:.1e}, IPA {parity['ipa_abs']:.1e}, RPA {parity['rpa_abs']:.1e}, "
+                   f"detection scores {parity['score_abs']:.1e}")
+        echo_path("bundle", bundle)
+        if cfg.export.archive:
+            echo_path("archive", bundle.with_name(bundle.name + ".tar.gz"))

@@ -1,0 +1,147 @@
+"""`siteloc export` on the micro reference site, then the thin runtime from the bundle alone."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def exported(micro_site, micro_extraction, tmp_path_factory):
+    from pipeline.bundle.export import run_export
+    from pipeline.retrieval.database import run_build_index
+
+    cfg, ing, model = micro_site
+    root = tmp_path_factory.mktemp("bundle")
+    index = run_build_index(cfg, inputs={"descriptors": micro_extraction}, outputs={"out": root / "index"})
+    bundle = run_export(cfg, inputs={"model": model, "index": index, "data": ing}, outputs={"out": root / "bundles"})
+    return cfg, ing, model, index, bundle
+
+
+def test_export_writes_a_verified_bundle_and_its_archive(exported):
+    from pipeline.runtime.bundle import verify_bundle
+
+    cfg, _, _, index, bundle = exported
+    assert bundle.name == f"{cfg.synth.site}-{cfg.export.version}" or bundle.name.endswith(f"-{cfg.export.version}")
+    m = verify_bundle(bundle)
+    assert {"map/map.yaml", "map/map.pgm", "db/database_ipa.parquet", "db/database_rpa.parquet", "db/catalog.parquet",
+            "models/describer.onnx", "models/describer.json", "filter.yaml"} <= set(m["files"])
+    for key in ("bundle_version", "site", "created", "code_version", "config", "dvc_lock_sha256"):
+        assert key in m
+    assert (bundle / "db" / "database_ipa.parquet").read_bytes() == (index / "database_ipa.parquet").read_bytes()
+    assert bundle.with_name(bundle.name + ".tar.gz").is_file()
+
+
+def test_onnx_describer_matches_torch_extraction(exported):
+    """The runtime's ONNX path gives the descriptors `extract` gives from torch, on a site image."""
+    from pipeline.detection.inference import load_detector, load_image
+    from pipeline.io import tables
+    from pipeline.retrieval.extract import describe
+    from pipeline.runtime.describer import OnnxDescriber
+
+    cfg, ing, model, index, bundle = exported
+    image_id = tables.read_table(index / "catalog.parquet", "catalog").column("image_id").to_pylist()[0]
+    r = cfg.retrieval
+    want = describe(load_detector(model, device="cpu"), [load_image(ing / image_id)], r.rpa_proposals,
+                    r.rpa_min_score)[0]
+    got = OnnxDescriber(bundle / "models" / "describer.onnx", bundle / "models" / "describer.json").describe(
+        ing / image_id)
+    np.testing.assert_allclose(got.ipa, want.ipa, atol=1e-4)
+    assert len(got.boxes) == len(want.boxes)
+    same = np.abs(got.boxes - want.boxes).max(axis=1) < 0.5
+    assert same.mean() >= 0.9  # tied proposal scores may swap order
+    np.testing.assert_allclose(got.rpa[same], want.rpa[same], atol=1e-3)
+    parity = json.loads((bundle / "models" / "describer.json").read_text())["parity"]
+    assert parity["max_differences"]["ipa_abs"] <= parity["tolerance"]["descriptor_abs"]
+
+
+def test_a_database_image_retrieves_its_own_pose_first(exported):
+    from pipeline.io import tables
+    from pipeline.runtime.localizer import Localizer
+
+    _, ing, _, index, bundle = exported
+    cat = tables.read_table(index / "catalog.parquet", "catalog").to_pydict()
+    loc = Localizer.from_bundle(bundle)
+    for k in (0, len(cat["image_id"]) // 2):
+        cands = loc.candidates(ing / cat["image_id"][k])
+        np.testing.assert_allclose(cands[0, :3], [cat["x"][k], cat["y"][k], cat["theta"][k]], atol=1e-9)
+        np.testing.assert_allclose(cands[:, 3], np.array([4, 3, 2, 1][: len(cands)]) / sum([4, 3, 2, 1][: len(cands)]))
+
+
+def test_tampered_and_wrong_size_inputs_are_refused_clearly(exported, tmp_path):
+    import shutil
+
+    from pipeline.runtime.bundle import BundleError
+    from pipeline.runtime.localizer import Localizer
+
+    _, _, _, _, bundle = exported
+    copy = tmp_path / bundle.name
+    shutil.copytree(bundle, copy)
+    with open(copy / "models" / "describer.onnx", "r+b") as f:
+        f.seek(1000)
+        b = f.read(1)
+        f.seek(1000)
+        f.write(bytes([b[0] ^ 0xFF]))
+    with pytest.raises(BundleError, match="describer.onnx: sha256 differs"):
+        Localizer.from_bundle(copy)
+    loc = Localizer.from_bundle(bundle)
+    with pytest.raises(BundleError, match="this bundle's detector was exported for"):
+        loc.candidates(np.zeros((50, 60, 3), np.uint8))
+
+
+def test_localizes_a_query_run_from_the_bundle_alone_without_torch(exported):
+    """The tiny site end to end: a fresh process loads the bundle, replays a query run with its camera
+    frames and ends within a bound of the ground truth, and never imports torch."""
+    _, ing, _, _, bundle = exported
+    run = sorted((ing / "runs").glob("query_*.parquet"))[0]
+    code = f"""
+import sys, json, numpy as np
+from pathlib import Path
+from pipeline.evaluation.replay import load_run
+from pipeline.runtime.localizer import Localizer
+loc = Localizer.from_bundle(Path({str(bundle)!r}), seed=0)
+run = load_run(Path({str(run)!r}))
+err = []
+for k in range(len(run)):
+    image = Path({str(ing)!r}) / run.image_ids[k] if run.image_ids[k] else None
+    e = loc.update(run.odom[k], run.ranges[k], image=image)
+    err.append(float(np.hypot(*(e.pose[:2] - run.gt[k, :2]))))
+print(json.dumps({{"torch": "torch" in sys.modules, "errors": err, "state": e.state}}))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO)
+    assert out.returncode == 0, out.stderr[-2000:]
+    doc = json.loads(out.stdout.strip().splitlines()[-1])
+    assert doc["torch"] is False
+    assert np.median(doc["errors"][-3:]) < 0.5, doc
+
+
+def test_cli_exports_and_localizes_with_the_bundle(exported, tmp_path):
+    from typer.testing import CliRunner
+
+    from stages.app import app
+    from tests.conftest import MICRO_SETS
+
+    cfg, ing, model, index, _ = exported
+    sets = [a for s in MICRO_SETS for a in ("--set", s)]
+    runner = CliRunner()
+    res = runner.invoke(app, ["export", str(model), str(index), str(ing), "--out", str(tmp_path / "b"), "--version",
+                              "2.1", "--config", "ci", *sets])
+    assert res.exit_code == 0, res.output
+    bundle = next((tmp_path / "b").glob("*-2.1"))
+    assert "ONNX vs torch" in res.output and (tmp_path / "b" / f"{bundle.name}.tar.gz").is_file()
+    run = sorted((ing / "runs").glob("query_*.parquet"))[0].stem
+    res = runner.invoke(app, ["localize", str(ing), "--bundle", str(bundle.with_name(bundle.name + ".tar.gz")),
+                              "--run", run, "--out", str(tmp_path / "loc"), "--config", "ci"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((tmp_path / "loc" / "metrics.json").read_text())
+    assert doc["init"] == "retrieval" and doc["runs"][run][0]["steps"] > 0
+    res = runner.invoke(app, ["localize", str(ing), "--init", "retrieval", "--out", str(tmp_path / "x"),
+                              "--config", "ci"])
+    assert res.exit_code == 1 and "--bundle" in res.output
