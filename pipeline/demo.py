@@ -1,9 +1,10 @@
 """The main job on data the project ships or generates.
 
 The reference site of the config (`synth.site`, office for the demo) is rendered and ingested, the
-detector is fine-tuned on it and scored on its held-out stops, every real CARMEN log becomes runs + map,
-and the documented example site is ingested. Later stages (retrieval, bundle, localization) join this
-chain as they land.
+detector is fine-tuned on it and scored on its held-out stops, IPA / RPA descriptors are extracted, the
+whitened retrieval database is built and measured, the deployable bundle is exported, and the site's
+query runs are localized from the bundle alone (camera frames + odometry + laser, as a robot would);
+then every real CARMEN log becomes runs + map and the documented example site is ingested.
 Steps whose output is already complete are reused, so an interrupted demo resumes where it stopped.
 """
 
@@ -107,6 +108,8 @@ def run_demo(
         run_evaluate_detector(cfg, inputs={"model": detector, "data": ingested}, outputs={"out": out}, force=True,
                               progress=progress)
     steps.append(DemoStep("evaluate-detector", out, reused, json.loads((out / "metrics.json").read_text())))
+    steps += _retrieval_and_bundle(cfg, ingested, detector, data, Path(outputs.get("bundles", data.parent / "bundles")),
+                                   detector_reused=steps[-2].reused, force=force, progress=progress)
 
     logs = sorted(carmen_dir.glob("*.log.gz")) + sorted(carmen_dir.glob("*.log")) if carmen_dir.is_dir() else []
     for log in logs:
@@ -126,4 +129,56 @@ def run_demo(
     summary = {s.name: {"output": str(s.output), "reused": s.reused, "report": s.report} for s in steps}
     write_text_atomic(data / "demo-summary.json", json.dumps(summary, indent=2) + "\n")
     write_effective_config(cfg, data, stage="demo", inputs={"carmen_dir": carmen_dir, "example_site": example})
+    return steps
+
+
+def _retrieval_and_bundle(cfg: SitelocConfig, ingested: Path, detector: Path, data: Path, bundles: Path, *,
+                          detector_reused: bool, force: bool, progress: bool) -> list[DemoStep]:
+    """extract -> build-index -> evaluate-retrieval -> export -> localize the query runs from the bundle.
+
+    A step is reused when its output is complete, was made with the same config section, and every
+    step it reads was reused too."""
+    from pipeline.bundle.export import run_export
+    from pipeline.io.site import read_site
+    from pipeline.localize import run_localize
+    from pipeline.retrieval.database import run_build_index
+    from pipeline.retrieval.evaluate import run_evaluate_retrieval
+    from pipeline.retrieval.extract import run_extract
+
+    steps: list[DemoStep] = []
+    ref = data / "reference"
+
+    def step(name: str, out: Path, report: str, upstream: bool, section: str, run) -> bool:
+        reused = upstream and not force and _complete(out, report) and _same_section(out, section,
+                                                                                      getattr(cfg, section))
+        if not reused:
+            run(out)
+        steps.append(DemoStep(name, out, reused, json.loads((out / report).read_text())))
+        return reused
+
+    descriptors, index = ref / "descriptors", ref / "index"
+    extracted = step("extract", descriptors, "report.json", detector_reused, "retrieval", lambda out: run_extract(
+        cfg, inputs={"model": detector, "data": ingested}, outputs={"out": out}, force=True, progress=progress))
+    indexed = step("build-index", index, "report.json", extracted, "retrieval", lambda out: run_build_index(
+        cfg, inputs={"descriptors": descriptors}, outputs={"out": out}, force=True))
+    step("evaluate-retrieval", ref / "retrieval-eval", "metrics.json", extracted, "retrieval",
+         lambda out: run_evaluate_retrieval(cfg, inputs={"descriptors": descriptors, "data": ingested},
+                                            outputs={"out": out}, force=True, progress=progress))
+    site = read_site(ingested / "site.yaml").name if (ingested / "site.yaml").is_file() else ingested.name
+    bundle = bundles / f"{site}-{cfg.export.version}"
+    manifest_path = bundle / "manifest.json"
+    exported = (indexed and not force and manifest_path.is_file()
+                and json.loads(manifest_path.read_text()).get("config") == cfg.model_dump(mode="json"))
+    if not exported:
+        run_export(cfg, inputs={"model": detector, "index": index, "data": ingested}, outputs={"out": bundles},
+                   force=True)
+    manifest = json.loads(manifest_path.read_text())
+    parity = json.loads((bundle / "models" / "describer.json").read_text())["parity"]["max_differences"]
+    steps.append(DemoStep("export", bundle, exported, {"files": len(manifest["files"]), "parity": parity,
+                                                       "bytes": sum(e["size"] for e in manifest["files"].values())}))
+    runs = sorted(p.stem for p in (ingested / "runs").glob("query_*.parquet"))
+    if runs:
+        step("localize (bundle)", ref / "localize-bundle", "metrics.json", exported, "filter",
+             lambda out: run_localize(cfg, inputs={"data": ingested}, outputs={"out": out}, runs=runs,
+                                      init="retrieval", bundle=bundle, force=True, progress=progress))
     return steps

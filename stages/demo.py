@@ -11,17 +11,20 @@ from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, l
 
 HELP = """Run the main job end to end on data that ships with the project.
 
-Today this renders the reference site of the config (`synth.site`: office for the demo preset, a
-micro site for ci; see `siteloc synth`) and ingests it, fine-tunes the detector on it and scores it on
-the held-out stops (see `siteloc train-detector` and `siteloc evaluate-detector`; about 15 minutes on
-2 cores for the demo preset), ingests every real CARMEN laser log in ../shared/data/carmen (runs
-table, occupancy map built from the scans, preview PNG; see `siteloc ingest-log`) and the example
-capture directory of docs/example-site (see `siteloc ingest`), then prints a summary. Later versions
-add retrieval, the bundle and localization.
+This renders the reference site of the config (`synth.site`: office for the demo preset, a micro
+site for ci; see `siteloc synth`) and ingests it, fine-tunes the detector on it and scores it on the
+held-out stops (`siteloc train-detector`, `evaluate-detector`; about 15 minutes on 2 cores for the demo
+preset), extracts IPA / RPA descriptors (`siteloc extract`; about 20 minutes on 2 cores for the office
+site), builds and measures the retrieval database (`build-index`, `evaluate-retrieval`), exports the
+deployable bundle (`siteloc export`) and localizes the site's query runs from the bundle alone, camera
+frames included (`siteloc localize --bundle`). Then it ingests every real CARMEN laser log in
+../shared/data/carmen (`siteloc ingest-log`) and the example capture directory of docs/example-site,
+and prints a summary.
 
 Finished steps are reused, so an interrupted demo resumes; --force redoes everything.
-Outputs: DATA/reference/site/, DATA/reference/ingested/, MODELS/detector/, MODELS/detector-eval/,
-DATA/carmen/<log>/, DATA/example/ingested/, DATA/demo-summary.json.
+Outputs: DATA/reference/{site,ingested,descriptors,index,retrieval-eval,localize-bundle}/,
+MODELS/detector/, MODELS/detector-eval/, BUNDLES/<site>-<version>/ (+ .tar.gz), DATA/carmen/<log>/,
+DATA/example/ingested/, DATA/demo-summary.json.
 """
 
 
@@ -34,6 +37,7 @@ def demo(
         ),
     ] = None,
     models: Annotated[Path, typer.Option("--models", "-m", help="Where trained models go.")] = Path("models"),
+    bundles: Annotated[Path, typer.Option("--bundles", help="Where the deployable bundle goes.")] = Path("bundles"),
     config: ConfigOpt = "demo",
     set_: SetOpt = None,
     force: ForceOpt = False,
@@ -51,7 +55,8 @@ def demo(
             typer.secho(
                 f"warning: no CARMEN logs at {carmen}; only the example site is ingested", fg="yellow", err=True
             )
-        steps = run_demo(cfg, inputs={"carmen_dir": carmen}, outputs={"data": data, "models": models}, force=force)
+        steps = run_demo(cfg, inputs={"carmen_dir": carmen},
+                         outputs={"data": data, "models": models, "bundles": bundles}, force=force)
 
         table = Table(title="siteloc demo", caption=f"outputs under {data}/ and {models}/ (summary: "
                                                    "data/demo-summary.json)")
@@ -69,6 +74,8 @@ def _map_size(m: dict) -> str:
 
 def _describe(r: dict) -> tuple[str, str]:
     """(input, result) of one step's report, for the summary table."""
+    import numpy as np
+
     if "objects_per_class" in r:
         return f"{r['capture_images']} views, {len(r['runs'])} runs", _map_size(r["map"])
     if "scans" in r:
@@ -78,6 +85,25 @@ def _describe(r: dict) -> tuple[str, str]:
     if "loss_history" in r:
         return (f"{r['train_images']} train images",
                 f"loss {r['loss_first']:.3f} -> {r['loss_last_50_mean']:.3f}, {r['iterations_per_s']} it/s")
+    if "ipa_dim" in r and "regions" in r and "whitening" not in r:
+        return f"{r['images']} images", f"IPA {r['ipa_dim']}-d, {r['regions']} RPA regions"
+    if "whitening" in r:
+        return f"{r['images']} database images", f"whitening {r['whitening']}: IPA {r['ipa_dim']}-d"
+    if "variants" in r:
+        best = r["variants"].get("ipa+rpa / pca") or next(iter(r["variants"].values()))
+        m = best["2m_30deg"]
+        return (f"{r['query_images']} queries", f"IPA+RPA/PCA mAP@4 {m['map_at_4']:.3f}, R@1 {m['recall_at_1']:.3f} "
+                f"(2 m, 30 deg)")
+    if "parity" in r:
+        return f"{r['files']} files, {r['bytes'] / 2**20:.1f} MiB", (
+            f"ONNX vs torch: IPA {r['parity']['ipa_abs']:.1e}, RPA {r['parity']['rpa_abs']:.1e}")
+    if "summary" in r:
+        s = list(r["summary"].values())
+        if not any("converged" in v for v in s):
+            return f"{len(s)} query runs", "no ground truth"
+        med = [v["error_median_m"] for v in s if v.get("error_median_m") is not None]
+        return (f"{len(s)} query runs", f"converged {sum(v['converged'] for v in s)}/{sum(v['trials'] for v in s)}"
+                + (f", median error {np.median(med):.2f} m" if med else ""))
     if "map_50" in r:
         fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
         return (f"{r['images']} held-out images", f"mAP@0.5 {fmt(r['map_50'])}, mAP@[.5:.95] {fmt(r['map_50_95'])}")

@@ -17,7 +17,8 @@ def test_demo_runs_resumes_and_forces(tmp_path):
     logs.mkdir()
     write_log(logs / "room-corrected.log.gz", room_log_lines(20))
     data = tmp_path / "data"
-    args = ["demo", "--data", str(data), "--carmen-dir", str(logs), "--config", "ci"]
+    args = ["demo", "--data", str(data), "--carmen-dir", str(logs), "--config", "ci", "--models",
+            str(tmp_path / "models"), "--bundles", str(tmp_path / "bundles")]
 
     first = runner.invoke(app, args)
     assert first.exit_code == 0, first.output
@@ -31,6 +32,12 @@ def test_demo_runs_resumes_and_forces(tmp_path):
     assert summary["ingest tiny"]["report"]["images"] == synth["capture_images"]
     assert "synth tiny" in first.output.replace("│", " ") or "tiny" in first.output
     assert not any(step["reused"] for step in summary.values())
+    # the main job end to end: retrieval database, bundle, and the query runs localized from the bundle alone
+    assert {"extract", "build-index", "evaluate-retrieval", "export", "localize (bundle)"} <= set(summary)
+    bundle = next((tmp_path / "bundles").glob("*-0.1.0"))
+    assert (bundle / "manifest.json").is_file() and (bundle.parent / f"{bundle.name}.tar.gz").is_file()
+    loc = json.loads((data / "reference" / "localize-bundle" / "metrics.json").read_text())
+    assert loc["init"] == "retrieval" and loc["runs"]
 
     map_pgm = data / "carmen" / "room-corrected" / "map.pgm"
     mtime = map_pgm.stat().st_mtime_ns

@@ -87,6 +87,11 @@ def _match_regions(a_boxes: np.ndarray, b_boxes: np.ndarray, tol: float) -> list
     return pairs
 
 
+def matched_share(pairs: list, boxes: np.ndarray) -> float:
+    """The share of `boxes` that found a partner; 1 when there is nothing to find (no detections)."""
+    return len(pairs) / len(boxes) if len(boxes) else 1.0
+
+
 def check_parity(det, onnx_path: Path, meta: dict, images: list[torch.Tensor], *, rpa_proposals: int,
                  rpa_min_score: float) -> dict:
     """Largest torch-vs-onnxruntime differences over `images`; raises SitelocError beyond TOLERANCE."""
@@ -108,7 +113,7 @@ def check_parity(det, onnx_path: Path, meta: dict, images: list[torch.Tensor], *
                                f"{len(ref[3])} vs {len(got[3])} detections)")
         worst["feature_map_abs"] = max(worst["feature_map_abs"], float(np.abs(ref[0] - got[0]).max()))
         pairs = _match_regions(ref[3], got[3], TOLERANCE["box_px"])  # near-equal scores may swap order
-        worst["detections_matched"] = min(worst["detections_matched"], len(pairs) / max(len(ref[3]), 1))
+        worst["detections_matched"] = min(worst["detections_matched"], matched_share(pairs, ref[3]))
         if pairs:
             i, j = np.array(pairs).T
             worst["score_abs"] = max(worst["score_abs"], float(np.abs(ref[4][i] - got[4][j]).max()))
@@ -116,7 +121,7 @@ def check_parity(det, onnx_path: Path, meta: dict, images: list[torch.Tensor], *
                                  rpa_min_score=rpa_min_score) for o in (ref, got))
         worst["ipa_abs"] = max(worst["ipa_abs"], float(np.abs(a.ipa - b.ipa).max()))
         pairs = _match_regions(a.boxes, b.boxes, TOLERANCE["box_px"])
-        worst["regions_matched"] = min(worst["regions_matched"], len(pairs) / max(len(a.boxes), 1))
+        worst["regions_matched"] = min(worst["regions_matched"], matched_share(pairs, a.boxes))
         if pairs:
             i, j = np.array(pairs).T
             worst["rpa_abs"] = max(worst["rpa_abs"], float(np.abs(a.rpa[i] - b.rpa[j]).max()))

@@ -80,9 +80,17 @@ class Localizer:
     @classmethod
     def from_bundle(cls, path: Path, *, seed: int | None = None, workdir: Path | None = None,
                     describer_threads: int | None = None) -> Localizer:
-        """Verify every file of the bundle (directory or .tar.gz), then load it."""
-        root = open_bundle(Path(path), workdir)
+        """Verify every file of the bundle (directory or .tar.gz), then load it. An archive is unpacked
+        into `workdir`, or into a temporary directory removed with the Localizer."""
+        import tempfile
+
         from pipeline.runtime.bundle import read_manifest
+
+        unpacked = None
+        if workdir is None and Path(path).is_file():
+            unpacked = tempfile.TemporaryDirectory(prefix="siteloc-bundle-")
+            workdir = Path(unpacked.name)
+        root = open_bundle(Path(path), workdir)
 
         manifest = read_manifest(root)
         try:
@@ -92,7 +100,9 @@ class Localizer:
         for key in ("filter", "retrieval", "laser"):
             if not isinstance(settings, dict) or key not in settings:
                 raise BundleError(f"{root / 'filter.yaml'}: no '{key}' section; export the bundle again")
-        return cls(root, manifest, settings, seed=seed, describer_threads=describer_threads)
+        loc = cls(root, manifest, settings, seed=seed, describer_threads=describer_threads)
+        loc._unpacked = unpacked  # lives as long as the Localizer
+        return loc
 
     def candidates(self, image) -> np.ndarray:
         """(K, 4) x, y, theta, weight: the image's Top-K poses after IPA retrieval and RPA re-ranking."""

@@ -119,3 +119,16 @@ def test_the_runtime_modules_import_without_torch():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parents[2])
     assert out.stdout.strip() == "False"
+
+
+def test_parity_matching_pairs_equal_boxes_in_any_order_and_accepts_no_detections():
+    import numpy as np
+
+    from pipeline.detection.onnx_export import _match_regions, matched_share
+
+    a = np.array([[0, 0, 10, 10], [5, 5, 20, 20], [1, 1, 2, 2]], np.float32)
+    b = a[[2, 0, 1]] + 0.1  # reordered (tied scores), within tolerance
+    pairs = _match_regions(a, b, 0.5)
+    assert sorted(pairs) == [(0, 1), (1, 2), (2, 0)] and matched_share(pairs, a) == 1.0
+    assert matched_share(_match_regions(a, b + 5, 0.5), a) == 0.0
+    assert matched_share([], np.zeros((0, 4))) == 1.0  # an untrained detector may detect nothing at all
