@@ -8,7 +8,7 @@
 
 Whitening is not applied here: it is fitted on the database by `siteloc build-index`, so one
 extraction serves several whitenings. Images: the mapping stops of `images.parquet` and, with
-`include_runs`, the camera frames of the runs (query runs give query images). Work goes in chunks to
+`include_runs`, the camera frames of the runs other than mapping runs (the query images). Work goes in chunks to
 `<out>.partial/`; an interrupted extraction resumes from its finished chunks when rerun with the same
 model, site and settings, and refuses (naming what differs) otherwise.
 """
@@ -39,13 +39,16 @@ class ImageRecord:
 
 
 def site_images(ingested: Path, *, include_runs: bool) -> list[ImageRecord]:
-    """Every image of an ingested site with its pose: mapping stops first, then run frames."""
+    """Every image of an ingested site with its pose: mapping stops first, then the frames of the runs
+    that are not mapping runs (those are the queries; a mapping run's frames would never be used)."""
     ingested = Path(ingested)
     t = tables.read_table(ingested / "images.parquet", "images").to_pydict()
     out = [ImageRecord(i, x, y, th, s, sp) for i, x, y, th, s, sp in
            zip(t["image_id"], t["x"], t["y"], t["theta"], t["stop_id"], t["split"], strict=True)]
     if include_runs and (ingested / "runs").is_dir():
         for path in sorted((ingested / "runs").glob("*.parquet")):
+            if path.stem.startswith("mapping"):
+                continue
             r = tables.read_table(path, "runs").select(["run", "image_id", "gt_x", "gt_y", "gt_theta"]).to_pydict()
             for run, image, x, y, th in zip(r["run"], r["image_id"], r["gt_x"], r["gt_y"], r["gt_theta"], strict=True):
                 if image and x is not None:

@@ -35,7 +35,9 @@ def test_tables_hold_unit_descriptors_for_every_image(site, extracted):
     ipa = tables.read_table(extracted / "ipa.parquet", "ipa")
     rpa = tables.read_table(extracted / "rpa.parquet", "rpa")
     images = tables.read_table(ing / "images.parquet", "images").num_rows
-    assert len(cat["image_id"]) > images  # the stops and the run frames
+    assert len(cat["image_id"]) > images  # the stops and the query runs' frames
+    assert not any(s.startswith("run:mapping") for s in cat["split"])  # a mapping run's frames are never used
+    assert any(s.startswith("run:query") for s in cat["split"])
     assert ipa.column("image_id").to_pylist() == cat["image_id"]
     assert ipa.schema.field("descriptor").type.list_size == 112
     np.testing.assert_allclose(np.linalg.norm(tables.descriptor_matrix(ipa), axis=1), 1, rtol=1e-5)
