@@ -18,7 +18,7 @@ def test_demo_runs_resumes_and_forces(tmp_path):
     write_log(logs / "room-corrected.log.gz", room_log_lines(20))
     data = tmp_path / "data"
     args = ["demo", "--data", str(data), "--carmen-dir", str(logs), "--config", "ci", "--models",
-            str(tmp_path / "models"), "--bundles", str(tmp_path / "bundles")]
+            str(tmp_path / "models"), "--bundles", str(tmp_path / "bundles"), "--reports", str(tmp_path / "reports")]
 
     first = runner.invoke(app, args)
     assert first.exit_code == 0, first.output
@@ -33,11 +33,11 @@ def test_demo_runs_resumes_and_forces(tmp_path):
     assert "synth tiny" in first.output.replace("│", " ") or "tiny" in first.output
     assert not any(step["reused"] for step in summary.values())
     # the main job end to end: retrieval database, bundle, and the query runs localized from the bundle alone
-    assert {"extract", "build-index", "evaluate-retrieval", "export", "localize (bundle)"} <= set(summary)
+    assert {"extract", "build-index", "evaluate-retrieval", "export", "evaluate (bundle)"} <= set(summary)
     bundle = next((tmp_path / "bundles").glob("*-0.1.0"))
     assert (bundle / "manifest.json").is_file() and (bundle.parent / f"{bundle.name}.tar.gz").is_file()
-    loc = json.loads((data / "reference" / "localize-bundle" / "metrics.json").read_text())
-    assert loc["init"] == "retrieval" and loc["runs"]
+    report = json.loads((tmp_path / "reports" / bundle.name.removesuffix("-0.1.0") / "metrics.json").read_text())
+    assert report["runs"] and report["summary"]["proposed"]["replays"] == len(report["runs"]) * report["trials"]
 
     map_pgm = data / "carmen" / "room-corrected" / "map.pgm"
     mtime = map_pgm.stat().st_mtime_ns
@@ -52,9 +52,9 @@ def test_demo_runs_resumes_and_forces(tmp_path):
 
 
 def test_demo_without_logs_warns_and_ingests_the_example(tmp_path):
-    result = runner.invoke(
-        app, ["demo", "--data", str(tmp_path / "d"), "--carmen-dir", str(tmp_path / "none"), "--config", "ci"]
-    )
+    result = runner.invoke(app, ["demo", "--data", str(tmp_path / "d"), "--carmen-dir", str(tmp_path / "none"),
+                                 "--config", "ci", "--models", str(tmp_path / "m"), "--bundles", str(tmp_path / "b"),
+                                 "--reports", str(tmp_path / "r")])  # never the repository's own folders
     assert result.exit_code == 0, result.output
     assert "no CARMEN logs" in result.output
     assert (tmp_path / "d" / "example" / "ingested" / "report.json").is_file()
@@ -62,7 +62,8 @@ def test_demo_without_logs_warns_and_ingests_the_example(tmp_path):
 
 def test_demo_does_not_reuse_a_site_made_from_another_preset(tmp_path):
     data = tmp_path / "d"
-    args = ["demo", "--data", str(data), "--carmen-dir", str(tmp_path / "none"), "--config", "ci"]
+    args = ["demo", "--data", str(data), "--carmen-dir", str(tmp_path / "none"), "--config", "ci", "--models",
+            str(tmp_path / "m"), "--bundles", str(tmp_path / "b"), "--reports", str(tmp_path / "r")]
     assert runner.invoke(app, args).exit_code == 0
     again = runner.invoke(app, [*args, "--set", "synth.seed=4"])
     assert again.exit_code == 0, again.output

@@ -80,8 +80,16 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     partial = out.with_name(out.name + ".partial")
     ckpt_path = partial / "checkpoint.pt"
     start, history = 0, []
+    fingerprint = _fingerprint(d, train)
     if ckpt_path.is_file():
         ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+        if ckpt.get("fingerprint") != fingerprint:
+            if not force:
+                raise TrainingError(f"{ckpt_path}: a checkpoint of another training (other detector settings or "
+                                    "training images); rerun with the settings it was made with to resume it, or "
+                                    "--force to discard it and start afresh")
+            ckpt = None
+    if ckpt_path.is_file() and ckpt is not None:
         model.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
         if amp and ckpt.get("scaler"):
@@ -119,7 +127,7 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
             with atomic_file(ckpt_path, "wb") as fh:
                 torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
                             "history": history, "rng_seed": seed_next, "torch_rng": torch.get_rng_state(),
-                            "scaler": scaler.state_dict() if amp else {}}, fh)
+                            "scaler": scaler.state_dict() if amp else {}, "fingerprint": fingerprint}, fh)
     bar.close()
     train_s = time.perf_counter() - t0
     model.eval()
@@ -142,6 +150,15 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
         ckpt_path.unlink()
         partial.rmdir()
     return out
+
+
+def _fingerprint(d, train) -> str:
+    """What a checkpoint must share with this training to be resumed by it: the detector section and the
+    training images (a checkpoint of another training must never be silently continued)."""
+    import hashlib
+
+    doc = {"detector": d.model_dump(mode="json"), "train": sorted(s.image_id for s in train)}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
 
 
 def param_groups(model, d) -> list[dict]:

@@ -66,8 +66,23 @@ def test_interrupted_training_resumes_from_its_checkpoint(site, tmp_path, monkey
     assert ckpt.is_file() and not (tmp_path / "det").exists()
     assert torch.load(ckpt, weights_only=True)["iteration"] == 5
     monkeypatch.setattr(T, "_loss", real)
+    other = load_config("ci", [*SMALL, "detector.iterations=12", "detector.checkpoint_every=5", "detector.lr=0.001"])
+    with pytest.raises(TrainingError, match="a checkpoint of another training"):  # never continued silently
+        run_train_detector(other, inputs={"data": site}, outputs={"out": tmp_path / "det"}, progress=False)
+    assert ckpt.is_file()
+    resumed = []
+    monkeypatch.setattr(T, "_loss", lambda *a: (resumed.append(1), real(*a))[1])
     out = run_train_detector(cfg, inputs={"data": site}, outputs={"out": tmp_path / "det"}, progress=False)
     assert len(json.loads((out / "metrics.json").read_text())["loss_history"]) == 12
+    # --force: another training's checkpoint is discarded and training starts afresh
+    monkeypatch.setattr(T, "_loss", failing)
+    calls["n"] = 0
+    with pytest.raises(KeyboardInterrupt):
+        run_train_detector(cfg, inputs={"data": site}, outputs={"out": tmp_path / "det3"}, progress=False)
+    steps = []
+    monkeypatch.setattr(T, "_loss", lambda *a: (steps.append(1), real(*a))[1])
+    run_train_detector(other, inputs={"data": site}, outputs={"out": tmp_path / "det3"}, force=True, progress=False)
+    assert len(steps) - len(resumed) == 5  # iterations 0-4 again (the same validation passes in both)
 
 
 def test_a_pickled_checkpoint_is_refused_and_a_nan_loss_stops(site, tmp_path, monkeypatch):
