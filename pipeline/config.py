@@ -215,7 +215,8 @@ class DetectorConfig(Strict):
 class RetrievalConfig(Strict):
     """`siteloc extract`, `build-index`, `query`, `evaluate-retrieval` (seed 000 sections 3.1.2, 4.1, 4.2)."""
 
-    include_runs: bool = Field(True, description="extract the runs' camera frames too (query runs give queries)")
+    include_runs: bool = Field(True, description="extract the camera frames of the runs other than mapping runs "
+                                                       "too (the queries)")
     rpa_proposals: int = Field(100, ge=1, description="RPN proposals per image kept as RPA regions (paper: 300)")
     rpa_min_score: float = Field(0.3, ge=0, le=1, description="detections kept as RPA regions score at least this")
     batch: int = Field(4, ge=1, description="images per forward pass")
@@ -244,6 +245,15 @@ class ExportConfig(Strict):
     archive: bool = Field(True, description="also write <site>-<version>.tar.gz beside the directory")
 
 
+class EvaluateConfig(Strict):
+    """`siteloc evaluate`: the paper's localization experiments on a site's query runs (seed 000 section 4)."""
+
+    trials: int = Field(3, ge=1, description="replays per run and method, seeds filter.seed .. + trials - 1")
+    runs: tuple[str, ...] = Field((), description="runs to replay; empty: every query_* run of the site")
+    converge_threshold_m: float = Field(0.5, gt=0, description="converged: position error under this ...")
+    converge_hold: int = Field(10, ge=1, description="... for this many consecutive steps")
+
+
 class SitelocConfig(Strict):
     """The whole configuration; each stage reads its own section."""
 
@@ -256,6 +266,7 @@ class SitelocConfig(Strict):
     detector: DetectorConfig = DetectorConfig()
     retrieval: RetrievalConfig = RetrievalConfig()
     export: ExportConfig = ExportConfig()
+    evaluate: EvaluateConfig = EvaluateConfig()
 
 
 def format_validation_error(source: str, err: ValidationError, root: type[BaseModel] | None = None) -> str:

@@ -99,7 +99,7 @@ def replay_bundle(run, loc, data: Path, trial: int) -> dict:
     if run.image_ids is None:
         raise InputError(f"{run.name}: no camera frames", [Problem(run.name, "--init retrieval needs image_id per step",
                                                                    fix="use a run recorded with a camera")])
-    loc.reset(seed=loc.filter_config.seed + trial)
+    loc.reset(seed=loc.base_seed + trial)  # trial t: seed + t, whatever was replayed before
     out = {k: [] for k in ("pose", "cov", "state", "particles", "updated", "best", "ms")}
     for t in range(len(run)):
         image = data / run.image_ids[t] if run.image_ids[t] else None
@@ -112,6 +112,19 @@ def replay_bundle(run, loc, data: Path, trial: int) -> dict:
     out = {k: (v if k == "state" else np.array(v)) for k, v in out.items()}
     out["final_particles"] = loc.filter.particles.copy()
     return out
+
+
+def estimate_columns(run, trial: int, rep: dict, err: np.ndarray, err_t: np.ndarray) -> dict:
+    """The columns of an `estimates` table for one replay (`replay_one` / `replay_bundle` output)."""
+    n = len(run)
+    pose = rep["pose"]
+    gt = run.gt if run.gt is not None else np.full((n, 3), np.nan)
+    return {"run": [run.name] * n, "trial": [trial] * n, "step": np.arange(n), "x": pose[:, 0], "y": pose[:, 1],
+            "theta": pose[:, 2], "cov_xx": rep["cov"][:, 0, 0], "cov_xy": rep["cov"][:, 0, 1],
+            "cov_yy": rep["cov"][:, 1, 1], "cov_tt": rep["cov"][:, 2, 2], "state": rep["state"],
+            "particles": rep["particles"], "updated": rep["updated"], "best_likelihood": rep["best"],
+            "update_ms": rep["ms"], "gt_x": gt[:, 0], "gt_y": gt[:, 1], "gt_theta": gt[:, 2],
+            "error_xy": err, "error_theta": err_t, "kidnapped": run.kidnapped}
 
 
 def run_localize(
@@ -177,15 +190,7 @@ def run_localize(
                 ms = rep["ms"][rep["updated"]]
                 m = {"steps": len(run), "update_ms_mean": round(float(np.mean(ms)), 4) if len(ms) else None}
             per_run.setdefault(run.name, []).append({"trial": trial, **m})
-            n = len(run)
-            gt = run.gt if run.gt is not None else np.full((n, 3), np.nan)
-            cols = {"run": [run.name] * n, "trial": [trial] * n, "step": np.arange(n), "x": pose[:, 0],
-                    "y": pose[:, 1], "theta": pose[:, 2], "cov_xx": rep["cov"][:, 0, 0], "cov_xy": rep["cov"][:, 0, 1],
-                    "cov_yy": rep["cov"][:, 1, 1], "cov_tt": rep["cov"][:, 2, 2], "state": rep["state"],
-                    "particles": rep["particles"], "updated": rep["updated"], "best_likelihood": rep["best"],
-                    "update_ms": rep["ms"], "gt_x": gt[:, 0], "gt_y": gt[:, 1], "gt_theta": gt[:, 2],
-                    "error_xy": err, "error_theta": err_t, "kidnapped": run.kidnapped}
-            for k, v in cols.items():
+            for k, v in estimate_columns(run, trial, rep, err, err_t).items():
                 rows[k].extend(list(v))
             if trial == 0:
                 title = f"{run.name}: init {init}, {cfg.filter.method}, {cfg.filter.sensor.model}"

@@ -7,6 +7,7 @@ import typer
 from stages import (
     config_cmd,
     demo,
+    evaluate,
     evaluate_detector,
     export,
     ingest,
@@ -43,6 +44,7 @@ app.command("query", help=help_text(retrieval.QUERY_HELP))(retrieval.query)
 app.command("evaluate-retrieval", help=help_text(retrieval.EVALUATE_HELP))(retrieval.evaluate_retrieval)
 app.command("export", help=help_text(export.HELP))(export.export)
 app.command("localize", help=help_text(localize.HELP))(localize.localize)
+app.command("evaluate", help=help_text(evaluate.HELP))(evaluate.evaluate)
 app.command("demo", help=help_text(demo.HELP))(demo.demo)
 app.add_typer(config_cmd.app, name="config")
 

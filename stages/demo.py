@@ -16,15 +16,15 @@ site for ci; see `siteloc synth`) and ingests it, fine-tunes the detector on it 
 held-out stops (`siteloc train-detector`, `evaluate-detector`; about 15 minutes on 2 cores for the demo
 preset), extracts IPA / RPA descriptors (`siteloc extract`; about 20 minutes on 2 cores for the office
 site), builds and measures the retrieval database (`build-index`, `evaluate-retrieval`), exports the
-deployable bundle (`siteloc export`) and localizes the site's query runs from the bundle alone, camera
-frames included (`siteloc localize --bundle`). Then it ingests every real CARMEN laser log in
-../shared/data/carmen (`siteloc ingest-log`) and the example capture directory of docs/example-site,
-and prints a summary.
+deployable bundle (`siteloc export`), localizes the site's query runs from the bundle alone, camera
+frames included, beside the paper's baselines, and writes the report (`siteloc evaluate`). Then it
+ingests every real CARMEN laser log in ../shared/data/carmen (`siteloc ingest-log`) and the example
+capture directory of docs/example-site, and prints a summary.
 
 Finished steps are reused, so an interrupted demo resumes; --force redoes everything.
-Outputs: DATA/reference/{site,ingested,descriptors,index,retrieval-eval,localize-bundle}/,
-MODELS/detector/, MODELS/detector-eval/, BUNDLES/<site>-<version>/ (+ .tar.gz), DATA/carmen/<log>/,
-DATA/example/ingested/, DATA/demo-summary.json.
+Outputs: DATA/reference/{site,ingested,descriptors,index,retrieval-eval}/, MODELS/detector/,
+MODELS/detector-eval/, BUNDLES/<site>-<version>/ (+ .tar.gz), REPORTS/<site>/report.md,
+DATA/carmen/<log>/, DATA/example/ingested/, DATA/demo-summary.json.
 """
 
 
@@ -38,6 +38,7 @@ def demo(
     ] = None,
     models: Annotated[Path, typer.Option("--models", "-m", help="Where trained models go.")] = Path("models"),
     bundles: Annotated[Path, typer.Option("--bundles", help="Where the deployable bundle goes.")] = Path("bundles"),
+    reports: Annotated[Path, typer.Option("--reports", help="Where the localization report goes.")] = Path("reports"),
     config: ConfigOpt = "demo",
     set_: SetOpt = None,
     force: ForceOpt = False,
@@ -56,7 +57,7 @@ def demo(
                 f"warning: no CARMEN logs at {carmen}; only the example site is ingested", fg="yellow", err=True
             )
         steps = run_demo(cfg, inputs={"carmen_dir": carmen},
-                         outputs={"data": data, "models": models, "bundles": bundles}, force=force)
+                         outputs={"data": data, "models": models, "bundles": bundles, "reports": reports}, force=force)
 
         table = Table(title="siteloc demo", caption=f"outputs under {data}/ and {models}/ (summary: "
                                                    "data/demo-summary.json)")
@@ -97,6 +98,10 @@ def _describe(r: dict) -> tuple[str, str]:
     if "parity" in r:
         return f"{r['files']} files, {r['bytes'] / 2**20:.1f} MiB", (
             f"ONNX vs torch: IPA {r['parity']['ipa_abs']:.1e}, RPA {r['parity']['rpa_abs']:.1e}")
+    if "table1" in r:
+        s, w = r["summary"]["proposed"], r["summary"]["amcl"]
+        return (f"{len(r['runs'])} query runs x {r['trials']}", f"p90 error {s['error_p90_all_m']:.2f} m (no camera "
+                f"{w['error_p90_all_m']:.2f} m), kidnappings {s['recovered']}/{s['kidnaps']} recovered")
     if "summary" in r:
         s = list(r["summary"].values())
         if not any("converged" in v for v in s):

@@ -48,3 +48,16 @@ def micro_extraction(micro_site, tmp_path_factory):
     cfg, ing, model = micro_site
     return run_extract(cfg, inputs={"model": model, "data": ing}, outputs={"out": tmp_path_factory.mktemp("x") / "d"},
                        progress=False)
+
+
+@pytest.fixture(scope="session")
+def micro_bundle(micro_site, micro_extraction, tmp_path_factory):
+    """(config, ingest dir, detector dir, index dir, bundle dir): `siteloc export` of the micro site."""
+    from pipeline.bundle.export import run_export
+    from pipeline.retrieval.database import run_build_index
+
+    cfg, ing, model = micro_site
+    root = tmp_path_factory.mktemp("bundle")
+    index = run_build_index(cfg, inputs={"descriptors": micro_extraction}, outputs={"out": root / "index"})
+    bundle = run_export(cfg, inputs={"model": model, "index": index, "data": ing}, outputs={"out": root / "bundles"})
+    return cfg, ing, model, index, bundle

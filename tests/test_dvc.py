@@ -45,3 +45,10 @@ def test_dvc_parses_the_pipeline():
     dvc = shutil.which("dvc") or str(ROOT / ".venv/bin/dvc")
     out = subprocess.run([dvc, "stage", "list"], cwd=ROOT, capture_output=True, text=True, check=True).stdout
     assert "ingest_log@intel-corrected" in out and "ingest_example" in out
+
+
+def test_bundle_path_vars_match_the_preset():
+    doc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
+    values = {k: v for d in doc["vars"] for k, v in d.items()}
+    cfg = load_config(values["preset"])
+    assert values["site"] == cfg.synth.site and str(values["bundle_version"]) == cfg.export.version

@@ -60,6 +60,7 @@ class Localizer:
         self.occupancy = read_map(root / "map" / "map.yaml")
         self.map = LaserMap.from_occupancy(self.occupancy, fcfg.sensor.max_distance)
         self.filter_config = fcfg
+        self.base_seed = fcfg.seed  # reset(seed=...) reseeds; replays count trials from this one
         self.reset()
         self.database = load_database(root / "db")
         self.describer = OnnxDescriber(root / "models" / "describer.onnx", root / "models" / "describer.json",

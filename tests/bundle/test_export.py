@@ -14,15 +14,8 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
-def exported(micro_site, micro_extraction, tmp_path_factory):
-    from pipeline.bundle.export import run_export
-    from pipeline.retrieval.database import run_build_index
-
-    cfg, ing, model = micro_site
-    root = tmp_path_factory.mktemp("bundle")
-    index = run_build_index(cfg, inputs={"descriptors": micro_extraction}, outputs={"out": root / "index"})
-    bundle = run_export(cfg, inputs={"model": model, "index": index, "data": ing}, outputs={"out": root / "bundles"})
-    return cfg, ing, model, index, bundle
+def exported(micro_bundle):
+    return micro_bundle
 
 
 def test_export_writes_a_verified_bundle_and_its_archive(exported):

@@ -1,0 +1,176 @@
+"""The localization experiments of seed 000 section 4, run on a site's query runs from its bundle.
+
+One deployable bundle (map, database, ONNX detector, filter settings) and the ingested site's query
+runs (camera frame, odometry, laser scan and ground truth per step, kidnappings flagged) give every
+method of the paper's figures the same inputs, seeds and filter settings (the bundle's filter.yaml):
+
+- `proposed`: the bundle's Localizer as the robot runs it: the first frame's Top-4 retrieved poses
+  (4:3:2:1) seed KLD-AMCL, the current frame's Top-4 are injected while the filter is lost.
+- `amcl`: the same filter started uniform, no camera (Figure 8's "without image-based localization";
+  augmented MCL's random particles are its only way back from a kidnapping).
+- `mcl`: plain MCL with a fixed count (`max_particles`, the paper's 5000), uniform (Figure 9).
+- `mixture`: mixture MCL (Thrun et al. 2001), uniform (Figure 10).
+- `image_only`: no filter: each frame's Top-1 retrieved pose is the estimate (Figure 10).
+
+Retrieval of a frame is deterministic (one ONNX pass, exact search), so each frame is described once
+and its candidates are shared by `proposed` (every trial) and `image_only`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import InputError, Problem
+
+METHODS = {
+    "proposed": "retrieval Top-4 + KLD-AMCL (proposed)",
+    "amcl": "KLD-AMCL, uniform start, no camera",
+    "mcl": "MCL, fixed particle count, uniform start",
+    "mixture": "mixture MCL, uniform start",
+    "image_only": "image retrieval only (Top-1 pose per frame)",
+}
+
+
+@dataclass
+class Replay:
+    """One method's replay of one run (one trial)."""
+
+    run: str
+    trial: int
+    pose: np.ndarray  # (T, 3) estimates
+    gt: np.ndarray  # (T, 3)
+    errors: np.ndarray  # (T,) position error, m
+    particles: np.ndarray  # (T,)
+    states: list[str]
+    kidnaps: list[int]
+    metrics: dict
+    rep: dict = field(repr=False, default_factory=dict)  # the raw replay (for the estimates table)
+
+
+class CachedRetrieval:
+    """A Localizer's `candidates`, computed once per image file (deterministic, and 0.3 s each on a CPU)."""
+
+    def __init__(self, loc):
+        self._candidates = loc.candidates
+        self.cache: dict[str, np.ndarray] = {}
+        self.seconds: list[float] = []
+
+    def __call__(self, image) -> np.ndarray:
+        key = str(image)
+        if key not in self.cache:
+            t0 = time.perf_counter()
+            self.cache[key] = self._candidates(image)
+            self.seconds.append(time.perf_counter() - t0)
+        return self.cache[key]
+
+
+def query_runs(data: Path, names: list[str] | None) -> list:
+    """The runs to evaluate on: those named, else every `query_*` run; each needs ground truth and frames."""
+    from pipeline.evaluation.replay import load_run
+
+    runs_dir = Path(data) / "runs"
+    paths = sorted(runs_dir.glob("query_*.parquet")) if not names else [runs_dir / f"{n}.parquet" for n in names]
+    problems = [Problem(str(p), "no such run", fix=f"one of {sorted(q.stem for q in runs_dir.glob('*.parquet'))}")
+                for p in paths if not p.is_file()]
+    if not paths:
+        problems.append(Problem(str(runs_dir), "no query_*.parquet runs",
+                                fix="ingest a site with query runs (`siteloc synth` makes them), or name --run"))
+    if problems:
+        raise InputError(f"{data}: nothing to evaluate on", problems)
+    runs = [load_run(p) for p in paths]
+    for r in runs:
+        if r.gt is None or r.image_ids is None or not any(r.image_ids):
+            raise InputError(f"{r.name}: cannot be evaluated", [Problem(
+                str(runs_dir / f"{r.name}.parquet"), "the experiments need ground truth and camera frames per step",
+                fix="evaluate on runs recorded with a camera and ground truth (the reference site's query runs)")])
+    return runs
+
+
+def _replay(run, trial: int, rep: dict, threshold_m: float, hold: int) -> Replay:
+    from pipeline.evaluation.metrics import replay_metrics
+
+    err = np.hypot(*(rep["pose"][:, :2] - run.gt[:, :2]).T)
+    kid = [int(k) for k in np.nonzero(run.kidnapped)[0] if k > 0]
+    m = replay_metrics(err, kid, rep["particles"], rep["ms"], rep["updated"], threshold_m=threshold_m, hold=hold)
+    m["error_p90_all_m"] = round(float(np.percentile(err, 90)), 4)
+    return Replay(run.name, trial, rep["pose"], run.gt, err, np.asarray(rep["particles"]), list(rep["state"]), kid,
+                  m, rep)
+
+
+def image_only_replay(run, data: Path, retrieve: CachedRetrieval) -> dict:
+    """Each frame's Top-1 retrieved pose as the estimate (the last one held through frames without an image)."""
+    T = len(run)
+    pose = np.zeros((T, 3))
+    ms = np.zeros(T)
+    last = None
+    for t in range(T):
+        if run.image_ids[t]:
+            t0 = time.perf_counter()
+            last = retrieve(Path(data) / run.image_ids[t])[0, :3]
+            ms[t] = (time.perf_counter() - t0) * 1000.0
+        pose[t] = last if last is not None else np.nan
+    first = next(i for i in range(T) if run.image_ids[i])
+    pose[:first] = pose[first]
+    return {"pose": pose, "cov": np.zeros((T, 3, 3)), "state": ["image"] * T, "particles": np.zeros(T, np.int64),
+            "updated": np.array([bool(i) for i in run.image_ids]), "best": np.ones(T), "ms": ms}
+
+
+def run_experiments(loc, data: Path, runs: list, *, trials: int, threshold_m: float = 0.5, hold: int = 10,
+                    progress: bool = True) -> tuple[dict[str, list[Replay]], CachedRetrieval]:
+    """Every method on every run and trial; returns {method: [Replay]} and the retrieval cache."""
+    from pipeline.localize import replay_bundle, replay_one
+    from pipeline.progress import progress_bar
+
+    retrieve = CachedRetrieval(loc)
+    loc.candidates = retrieve  # the Localizer calls self.candidates: every trial shares the cache
+    fcfg = loc.filter_config.model_copy(update={"seed": loc.base_seed})
+    mount = loc.laser.base_from_laser
+    out: dict[str, list[Replay]] = {m: [] for m in METHODS}
+    jobs = [(m, r, t) for m in ("proposed", "amcl", "mcl", "mixture") for r in runs for t in range(trials)]
+    jobs += [("image_only", r, 0) for r in runs]
+    try:
+        for method, run, trial in progress_bar(jobs, desc="experiments", unit="replay", enabled=progress):
+            if method == "proposed":
+                rep = replay_bundle(run, loc, data, trial)
+            elif method == "image_only":
+                rep = image_only_replay(run, data, retrieve)
+            else:
+                rep = replay_one(run, loc.map, fcfg.model_copy(update={"method": method}), mount, "uniform", trial)
+            out[method].append(_replay(run, trial, rep, threshold_m, hold))
+    finally:
+        del loc.candidates  # the class's own method again
+    return out, retrieve
+
+
+def summarise(replays: list[Replay]) -> dict:
+    """One method over its replays: convergence, accuracy, kidnap recovery, particles, time."""
+    conv = [r.metrics["converged_step"] for r in replays if r.metrics["converged_step"] is not None]
+    rec = [s for r in replays for s in r.metrics["recovery_steps"]]
+    ok = [s for s in rec if s is not None]
+    all_err = np.concatenate([r.errors for r in replays])
+    good = [r.metrics["error_mean_m"] for r in replays if r.metrics["error_mean_m"] is not None]
+    ms = [r.metrics["update_ms_mean"] for r in replays if r.metrics["update_ms_mean"] is not None]
+
+    def rnd(v, n=4):
+        return None if v is None else round(float(v), n)
+
+    return {
+        "replays": len(replays),
+        "converged": len(conv),
+        "converged_step_median": rnd(np.median(conv)) if conv else None,
+        "error_p90_all_m": rnd(np.percentile(all_err, 90)),
+        "error_median_all_m": rnd(np.median(all_err)),
+        "error_mean_converged_m": rnd(np.mean(good)) if good else None,
+        "kidnaps": len(rec),
+        "recovered": len(ok),
+        "recovery_steps_median": rnd(np.median(ok)) if ok else None,
+        "recovery_steps_max": int(max(ok)) if ok else None,
+        "recovered_within_15": int(sum(s <= 15 for s in ok)),
+        "recovered_within_40": int(sum(s <= 40 for s in ok)),
+        "particles_mean": rnd(np.mean(np.concatenate([r.particles for r in replays])), 1),
+        "update_ms_mean": rnd(np.mean(ms), 3) if ms else None,
+    }

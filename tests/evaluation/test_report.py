@@ -1,0 +1,165 @@
+"""`siteloc evaluate`: the paper's experiments from a bundle, checked against recomputations."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.evaluation.experiments import CachedRetrieval, Replay, summarise
+from pipeline.evaluation.report_figures import recovery_curves
+
+
+def _replay(errors, kidnaps=(), particles=None, converged=0, recovery=(), mean=0.1):
+    e = np.asarray(errors, float)
+    return Replay("r", 0, np.zeros((len(e), 3)), np.zeros((len(e), 3)), e,
+                  np.asarray(particles if particles is not None else np.full(len(e), 100)), ["tracking"] * len(e),
+                  list(kidnaps), {"converged_step": converged, "recovery_steps": list(recovery),
+                                  "error_mean_m": mean, "update_ms_mean": 2.0})
+
+
+def test_recovery_curves_align_each_kidnapping_and_stop_at_the_next():
+    r = _replay(np.arange(20.0), kidnaps=[5, 12])
+    c = recovery_curves([r], before=2, after=10)
+    assert c.shape == (2, 12)
+    np.testing.assert_array_equal(c[0, :9], np.arange(3.0, 12.0))  # steps 3..11, then the next kidnapping at 12
+    assert np.isnan(c[0, 9:]).all()
+    np.testing.assert_array_equal(c[1, :10], np.arange(10.0, 20.0))  # steps 10..19, then the run ends
+    assert np.isnan(c[1, 10:]).all()
+    early = recovery_curves([_replay(np.arange(6.0), kidnaps=[1])], before=3, after=2)
+    np.testing.assert_array_equal(early[0], [np.nan, np.nan, 0.0, 1.0, 2.0])
+
+
+def test_summary_counts_against_hand_computed_values():
+    a = _replay([5.0, 0.1, 0.1, 0.1], kidnaps=[2], converged=1, recovery=[3], mean=0.1)
+    b = _replay([9.0, 9.0, 0.2, 0.2], kidnaps=[1, 3], converged=None, recovery=[20, None], mean=None)
+    s = summarise([a, b])
+    assert (s["replays"], s["converged"], s["converged_step_median"]) == (2, 1, 1.0)
+    assert s["kidnaps"] == 3 and s["recovered"] == 2 and s["recovery_steps_median"] == 11.5
+    assert s["recovery_steps_max"] == 20 and s["recovered_within_15"] == 1 and s["recovered_within_40"] == 2
+    assert s["error_p90_all_m"] == pytest.approx(np.percentile([5, .1, .1, .1, 9, 9, .2, .2], 90))
+    assert s["error_mean_converged_m"] == pytest.approx(0.1)
+
+
+def test_cached_retrieval_describes_each_image_once():
+    calls = []
+
+    class Loc:
+        def candidates(self, image):
+            calls.append(image)
+            return np.full((4, 4), float(len(calls)))
+
+    cache = CachedRetrieval(Loc())
+    first = cache("a.png")
+    assert cache("a.png") is first and len(calls) == 1
+    cache("b.png")
+    assert len(calls) == 2 and len(cache.seconds) == 2
+
+
+@pytest.fixture(scope="module")
+def report(micro_bundle, tmp_path_factory):
+    from pipeline.evaluation.report import run_evaluate
+
+    cfg, ing, _, _, bundle = micro_bundle
+    cfg = cfg.model_copy(update={"evaluate": cfg.evaluate.model_copy(update={"trials": 2})})
+    out = run_evaluate(cfg, inputs={"bundle": bundle, "data": ing}, outputs={"out": tmp_path_factory.mktemp("r") / "o"},
+                       progress=False)
+    return cfg, ing, bundle, out
+
+
+def test_report_holds_every_experiment_and_figure(report):
+    from pipeline.evaluation.experiments import METHODS
+
+    _, ing, _, out = report
+    doc = json.loads((out / "metrics.json").read_text())
+    runs = sorted(p.stem for p in (ing / "runs").glob("query_*.parquet"))
+    assert doc["runs"] == runs and runs
+    for m in METHODS:
+        expected = len(runs) * (1 if m == "image_only" else 2)
+        assert doc["summary"][m]["replays"] == expected == len(doc["replays"][m])
+        assert doc["summary"][m]["kidnaps"] == sum(len(r["kidnaps"]) for r in doc["replays"][m])
+    for name in ("fig8_error_cdf", "fig9_particles", "fig10_error_vs_step", "fig11_kidnap_map",
+                 "fig12_kidnap_recovery"):
+        assert (out / f"{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert f"({name}.png)" in (out / "report.md").read_text()
+    text = (out / "report.md").read_text()
+    assert "## Table 1" in text and "| 90th-percentile error, with image retrieval" in text
+    assert len(doc["table1"]) == len(runs) and all(len(r["candidates"]) == 4 for r in doc["table1"])
+    assert (out / "config.yaml").is_file()
+
+
+def test_summary_figures_recompute_from_the_estimates_tables(report):
+    from pipeline.io import tables
+
+    _, _, _, out = report
+    doc = json.loads((out / "metrics.json").read_text())
+    for m in ("proposed", "amcl", "mcl"):
+        t = tables.read_table(out / "estimates" / f"{m}.parquet", "estimates").to_pydict()
+        err = np.hypot(np.subtract(t["x"], t["gt_x"]), np.subtract(t["y"], t["gt_y"]))
+        np.testing.assert_allclose(t["error_xy"], err)
+        assert doc["summary"][m]["error_p90_all_m"] == pytest.approx(np.percentile(err, 90), abs=1e-4)
+        assert doc["summary"][m]["particles_mean"] == pytest.approx(np.mean(t["particles"]), abs=0.1)
+    mcl = tables.read_table(out / "estimates" / "mcl.parquet", "estimates").column("particles").to_numpy()
+    cfg = report[0]
+    assert (mcl == cfg.filter.max_particles).all()  # fixed-count MCL never adapts
+
+
+def test_image_only_and_table1_match_a_fresh_localizer(report):
+    """Independent of the cache: a new Localizer's Top-4 for the run's frames."""
+    from pipeline.evaluation.replay import load_run
+    from pipeline.io import tables
+    from pipeline.runtime.localizer import Localizer
+
+    _, ing, bundle, out = report
+    doc = json.loads((out / "metrics.json").read_text())
+    loc = Localizer.from_bundle(bundle)
+    run = load_run(ing / "runs" / f"{doc['runs'][0]}.parquet")
+    t = tables.read_table(out / "estimates" / "image_only.parquet", "estimates").to_pydict()
+    rows = [i for i, r in enumerate(t["run"]) if r == run.name]
+    for k in (0, len(run) // 2, len(run) - 1):
+        top1 = loc.candidates(ing / run.image_ids[k])[0]
+        np.testing.assert_allclose([t["x"][rows[k]], t["y"][rows[k]]], top1[:2], atol=1e-9)
+    first = loc.candidates(ing / run.image_ids[0])
+    np.testing.assert_allclose(doc["table1"][0]["candidates"], first, atol=1e-3)
+    np.testing.assert_allclose(np.asarray(doc["table1"][0]["candidates"])[:, 3], [0.4, 0.3, 0.2, 0.1], rtol=1e-6)
+
+
+def test_same_inputs_give_the_same_report(report, tmp_path):
+    from pipeline.evaluation.report import run_evaluate
+
+    cfg, ing, bundle, out = report
+    cfg = cfg.model_copy(update={"evaluate": cfg.evaluate.model_copy(update={"trials": 2})})
+    again = run_evaluate(cfg, inputs={"bundle": bundle, "data": ing}, outputs={"out": tmp_path / "o"}, progress=False)
+    a, b = (json.loads((p / "metrics.json").read_text()) for p in (out, again))
+    for d in (a, b):
+        for key in ("seconds", "machine", "retrieval"):
+            d.pop(key)
+        for m in d["replays"].values():
+            for r in m:
+                r.pop("update_ms_mean"), r.pop("update_ms_p90")
+        for s in d["summary"].values():
+            s.pop("update_ms_mean")
+    a.pop("bundle"), b.pop("bundle")
+    assert a == b
+
+
+def test_cli_reports_and_refuses_bad_inputs_clearly(micro_bundle, tmp_path):
+    from typer.testing import CliRunner
+
+    from stages.app import app
+
+    _, ing, _, _, bundle = micro_bundle
+    runner = CliRunner()
+    archive = bundle.with_name(bundle.name + ".tar.gz")
+    res = runner.invoke(app, ["evaluate", str(archive), str(ing), "--out", str(tmp_path / "r"), "--trials", "1",
+                              "--config", "ci"])
+    assert res.exit_code == 0, res.output
+    assert "kidnappings recovered" in res.output and (tmp_path / "r" / "report.md").is_file()
+    res = runner.invoke(app, ["evaluate", str(bundle), str(ing), "--run", "nope", "--out", str(tmp_path / "x"),
+                              "--config", "ci"])
+    assert res.exit_code == 1 and "nope" in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "x").exists()
+    res = runner.invoke(app, ["evaluate", str(tmp_path / "missing"), str(ing), "--out", str(tmp_path / "y"),
+                              "--config", "ci"])
+    assert res.exit_code == 1 and "missing" in res.output and "Traceback" not in res.output
