@@ -142,6 +142,9 @@ class KidnapConfig(Strict):
     reinit_uniform: bool = Field(
         True, description="when lost, restart global localization (candidates injected later still help)"
     )
+    keep_particles: int = Field(
+        100, ge=0, description="... keeping this many of the heaviest particles: a false alarm (people in front "
+        "of the laser) must not throw away a right belief; the next scans decide between it and the new ones")
 
 
 class FilterConfig(Strict):
@@ -168,6 +171,9 @@ class FilterConfig(Strict):
     init_std_theta_deg: float = Field(15.0, gt=0, description="spread around a pose or candidate, degrees")
     candidate_weights: tuple[float, ...] = Field((4.0, 3.0, 2.0, 1.0), min_length=1)
     inject_particles: int = Field(1000, ge=0, description="particles injected around candidates per step when lost")
+    inject_while_relocalising: bool = Field(
+        False, description="inject at every step with an image until the filter tracks again, not only at the "
+        "step it declares itself lost (faster on a site whose retrieval is good; wrong candidates pull it away)")
     mixture_share: float = Field(0.1, ge=0, le=1, description="mixture MCL: share drawn from the dual proposal")
 
     @model_validator(mode="after")
@@ -248,7 +254,7 @@ class ExportConfig(Strict):
 class EvaluateConfig(Strict):
     """`siteloc evaluate`: the paper's localization experiments on a site's query runs (seed 000 section 4)."""
 
-    trials: int = Field(3, ge=1, description="replays per run and method, seeds filter.seed .. + trials - 1")
+    trials: int = Field(5, ge=1, description="replays per run and method, seeds filter.seed .. + trials - 1")
     runs: tuple[str, ...] = Field((), description="runs to replay; empty: every query_* run of the site")
     converge_threshold_m: float = Field(0.5, gt=0, description="converged: position error under this ...")
     converge_hold: int = Field(10, ge=1, description="... for this many consecutive steps")

@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipeline.config import SitelocConfig, write_effective_config
@@ -24,12 +25,23 @@ DEFAULT_CARMEN_DIR = Path(os.environ.get("SITELOC_CARMEN_DIR", REPO_ROOT.parent 
 EXAMPLE_SITE = REPO_ROOT / "docs" / "example-site"
 
 
+_clock = {"t": time.perf_counter()}
+
+
+def _lap() -> float:
+    """Seconds since the previous step was recorded (steps are recorded right after their work)."""
+    now = time.perf_counter()
+    dt, _clock["t"] = now - _clock["t"], now
+    return round(dt, 1)
+
+
 @dataclass(frozen=True)
 class DemoStep:
     name: str
     output: Path
     reused: bool
     report: dict
+    seconds: float = field(default_factory=_lap)
 
 
 def _complete(out: Path, report: str = "report.json") -> bool:
@@ -76,6 +88,7 @@ def run_demo(
     from pipeline.sitegen.synth import run_synth
 
     inputs = inputs or {}
+    _clock["t"] = time.perf_counter()
     carmen_dir = Path(inputs.get("carmen_dir", DEFAULT_CARMEN_DIR))
     example = Path(inputs.get("example_site", EXAMPLE_SITE))
     data = Path(outputs["data"])
@@ -128,7 +141,9 @@ def run_demo(
         run_ingest(cfg, inputs={"site": example}, outputs={"out": out}, force=True, progress=progress)
     steps.append(DemoStep("ingest example-site", out, reused, json.loads((out / "report.json").read_text())))
 
-    summary = {s.name: {"output": str(s.output), "reused": s.reused, "report": s.report} for s in steps}
+    summary = {s.name: {"output": str(s.output), "reused": s.reused, "seconds": s.seconds, "report": s.report}
+               for s in steps}
+    summary["total"] = {"seconds": round(sum(s.seconds for s in steps), 1)}
     write_text_atomic(data / "demo-summary.json", json.dumps(summary, indent=2) + "\n")
     write_effective_config(cfg, data, stage="demo", inputs={"carmen_dir": carmen_dir, "example_site": example})
     return steps

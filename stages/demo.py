@@ -61,11 +61,13 @@ def demo(
 
         table = Table(title="siteloc demo", caption=f"outputs under {data}/ and {models}/ (summary: "
                                                    "data/demo-summary.json)")
-        for col in ("step", "input", "result", "status"):
+        for col in ("step", "input", "result", "status", "time"):
             table.add_column(col)
         for s in steps:
-            table.add_row(s.name.removesuffix("-corrected"), *_describe(s.report), "reused" if s.reused else "done")
+            table.add_row(s.name.removesuffix("-corrected"), *_describe(s.report), "reused" if s.reused else "done",
+                          _duration(s.seconds))
         Console().print(table)
+        typer.echo(f"total: {_duration(sum(s.seconds for s in steps))}")
         typer.echo("endpoints on walls: share of scan endpoints on occupied map cells, exact / within one cell")
 
 
@@ -100,8 +102,8 @@ def _describe(r: dict) -> tuple[str, str]:
             f"ONNX vs torch: IPA {r['parity']['ipa_abs']:.1e}, RPA {r['parity']['rpa_abs']:.1e}")
     if "table1" in r:
         s, w = r["summary"]["proposed"], r["summary"]["amcl"]
-        return (f"{len(r['runs'])} query runs x {r['trials']}", f"p90 error {s['error_p90_all_m']:.2f} m (no camera "
-                f"{w['error_p90_all_m']:.2f} m), kidnappings {s['recovered']}/{s['kidnaps']} recovered")
+        return (f"{len(r['runs'])} query runs x {r['trials']}", f"global p90 error {s['error_p90_global_m']:.2f} m "
+                f"(no camera {w['error_p90_global_m']:.2f} m), kidnappings {s['recovered']}/{s['kidnaps']} recovered")
     if "summary" in r:
         s = list(r["summary"].values())
         if not any("converged" in v for v in s):
@@ -113,3 +115,7 @@ def _describe(r: dict) -> tuple[str, str]:
         fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
         return (f"{r['images']} held-out images", f"mAP@0.5 {fmt(r['map_50'])}, mAP@[.5:.95] {fmt(r['map_50_95'])}")
     return f"{r['images']} images", _map_size(r["map"])
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 60 else f"{int(seconds // 60)} min {seconds % 60:02.0f} s"

@@ -64,8 +64,8 @@ def evaluate(
         report = run_evaluate(cfg, inputs={"bundle": bundle, "data": data}, outputs={"out": out}, force=force)
         doc = json.loads((report / "metrics.json").read_text())
         s = doc["summary"]["proposed"]
-        typer.echo(f"proposed: p90 error {s['error_p90_all_m']} m (without retrieval "
-                   f"{doc['summary']['amcl']['error_p90_all_m']} m), mean error after convergence "
+        typer.echo(f"proposed: p90 error of global localization {s['error_p90_global_m']} m (without retrieval "
+                   f"{doc['summary']['amcl']['error_p90_global_m']} m), mean error after convergence "
                    f"{s['error_mean_converged_m']} m, {s['recovered']} of {s['kidnaps']} kidnappings recovered "
                    f"(median {s['recovery_steps_median']} steps)")
         echo_path("report", report / "report.md")

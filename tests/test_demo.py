@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 from typer.testing import CliRunner
 
 from stages.app import app
@@ -31,7 +32,10 @@ def test_demo_runs_resumes_and_forces(tmp_path):
     assert synth["capture_images"] == 6 * synth["stops"]
     assert summary["ingest tiny"]["report"]["images"] == synth["capture_images"]
     assert "synth tiny" in first.output.replace("│", " ") or "tiny" in first.output
+    total = summary.pop("total")["seconds"]
     assert not any(step["reused"] for step in summary.values())
+    assert total == pytest.approx(sum(step["seconds"] for step in summary.values()), abs=0.1 * len(summary))
+    assert "total:" in first.output
     # the main job end to end: retrieval database, bundle, and the query runs localized from the bundle alone
     assert {"extract", "build-index", "evaluate-retrieval", "export", "evaluate (bundle)"} <= set(summary)
     bundle = next((tmp_path / "bundles").glob("*-0.1.0"))
@@ -44,11 +48,13 @@ def test_demo_runs_resumes_and_forces(tmp_path):
     second = runner.invoke(app, args)
     assert second.exit_code == 0 and "reused" in second.output
     assert map_pgm.stat().st_mtime_ns == mtime
-    assert all(step["reused"] for step in json.loads((data / "demo-summary.json").read_text()).values())
+    assert all(step["reused"] for name, step in json.loads((data / "demo-summary.json").read_text()).items()
+               if name != "total")
 
     forced = runner.invoke(app, [*args, "--force"])
     assert forced.exit_code == 0
-    assert not any(step["reused"] for step in json.loads((data / "demo-summary.json").read_text()).values())
+    assert not any(step["reused"] for name, step in json.loads((data / "demo-summary.json").read_text()).items()
+                   if name != "total")
 
 
 def test_demo_without_logs_warns_and_ingests_the_example(tmp_path):

@@ -50,6 +50,12 @@ class Replay:
     metrics: dict
     rep: dict = field(repr=False, default_factory=dict)  # the raw replay (for the estimates table)
 
+    @property
+    def global_errors(self) -> np.ndarray:
+        """Errors of the global localization: from the start to the first kidnapping (the paper's Figures 8-9
+        measure global localization; kidnappings are Figures 11-12)."""
+        return self.errors[: self.kidnaps[0]] if self.kidnaps else self.errors
+
 
 class CachedRetrieval:
     """A Localizer's `candidates`, computed once per image file (deterministic, and 0.3 s each on a CPU)."""
@@ -97,6 +103,7 @@ def _replay(run, trial: int, rep: dict, threshold_m: float, hold: int) -> Replay
     kid = [int(k) for k in np.nonzero(run.kidnapped)[0] if k > 0]
     m = replay_metrics(err, kid, rep["particles"], rep["ms"], rep["updated"], threshold_m=threshold_m, hold=hold)
     m["error_p90_all_m"] = round(float(np.percentile(err, 90)), 4)
+    m["error_p90_global_m"] = round(float(np.percentile(err[: kid[0]] if kid else err, 90)), 4)
     return Replay(run.name, trial, rep["pose"], run.gt, err, np.asarray(rep["particles"]), list(rep["state"]), kid,
                   m, rep)
 
@@ -152,7 +159,9 @@ def summarise(replays: list[Replay]) -> dict:
     rec = [s for r in replays for s in r.metrics["recovery_steps"]]
     ok = [s for s in rec if s is not None]
     all_err = np.concatenate([r.errors for r in replays])
+    global_err = np.concatenate([r.global_errors for r in replays])
     good = [r.metrics["error_mean_m"] for r in replays if r.metrics["error_mean_m"] is not None]
+    med = [r.metrics["error_median_m"] for r in replays if r.metrics["error_median_m"] is not None]
     ms = [r.metrics["update_ms_mean"] for r in replays if r.metrics["update_ms_mean"] is not None]
 
     def rnd(v, n=4):
@@ -162,9 +171,11 @@ def summarise(replays: list[Replay]) -> dict:
         "replays": len(replays),
         "converged": len(conv),
         "converged_step_median": rnd(np.median(conv)) if conv else None,
+        "error_p90_global_m": rnd(np.percentile(global_err, 90)),
         "error_p90_all_m": rnd(np.percentile(all_err, 90)),
         "error_median_all_m": rnd(np.median(all_err)),
         "error_mean_converged_m": rnd(np.mean(good)) if good else None,
+        "error_median_converged_m": rnd(np.median(med)) if med else None,
         "kidnaps": len(rec),
         "recovered": len(ok),
         "recovery_steps_median": rnd(np.median(ok)) if ok else None,

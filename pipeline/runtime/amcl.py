@@ -241,7 +241,10 @@ class AdaptiveMCL:
             self._good_updates = 0
             self._low_updates = 0
             if k.reinit_uniform:
-                self._set_particles(self.map.sample_free(self.cfg.max_particles, self.rng))
+                n_keep = min(k.keep_particles, len(self.particles), self.cfg.max_particles)
+                kept = self.particles[np.argsort(-self.log_w, kind="stable")[:n_keep]]
+                self._set_particles(np.vstack([kept, self.map.sample_free(self.cfg.max_particles - n_keep,
+                                                                          self.rng)]))
                 self._force = True
             return
         if self.state != FilterState.TRACKING:

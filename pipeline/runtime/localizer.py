@@ -139,7 +139,9 @@ class Localizer:
             else:
                 self.filter.init_uniform()
             self.started = True
-        elif image is not None and (self.filter.state == FilterState.LOST or not self.seeded_by_retrieval):
+        elif image is not None and (self.filter.state == FilterState.LOST or not self.seeded_by_retrieval
+                                    or (self.filter.state == FilterState.RELOCALISING
+                                        and self.filter_config.inject_while_relocalising)):
             cands = self.candidates(image)
             self.filter.inject(cands[:, :3], cands[:, 3])
             self.seeded_by_retrieval = True

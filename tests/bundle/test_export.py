@@ -90,8 +90,13 @@ def test_tampered_and_wrong_size_inputs_are_refused_clearly(exported, tmp_path):
 
 
 def test_localizes_a_query_run_from_the_bundle_alone_without_torch(exported):
-    """The tiny site end to end: a fresh process loads the bundle, replays a query run with its camera
-    frames and ends within a bound of the ground truth, and never imports torch."""
+    """The tiny site end to end: a fresh process loads the bundle, replays a query run (with its
+    kidnapping) with its camera frames under 10 seeds, and never imports torch.
+
+    The micro detector is barely trained (its retrieval is close to random) and the tiny floor is a
+    symmetric ring, so one 14-step replay is a coin flip between the right place and its mirror: the
+    bound is on the share of seeds ending within 0.5 m (measured 6 of 10; an estimate that ignored the
+    data would land within 0.5 m about 1 % of the time)."""
     _, ing, _, _, bundle = exported
     run = sorted((ing / "runs").glob("query_*.parquet"))[0]
     code = f"""
@@ -101,18 +106,24 @@ from pipeline.evaluation.replay import load_run
 from pipeline.runtime.localizer import Localizer
 loc = Localizer.from_bundle(Path({str(bundle)!r}), seed=0)
 run = load_run(Path({str(run)!r}))
-err = []
-for k in range(len(run)):
-    image = Path({str(ing)!r}) / run.image_ids[k] if run.image_ids[k] else None
-    e = loc.update(run.odom[k], run.ranges[k], image=image)
-    err.append(float(np.hypot(*(e.pose[:2] - run.gt[k, :2]))))
-print(json.dumps({{"torch": "torch" in sys.modules, "errors": err, "state": e.state}}))
+finals, states = [], []
+for seed in range(10):
+    loc.reset(seed=seed)
+    err = []
+    for k in range(len(run)):
+        image = Path({str(ing)!r}) / run.image_ids[k] if run.image_ids[k] else None
+        e = loc.update(run.odom[k], run.ranges[k], image=image)
+        err.append(float(np.hypot(*(e.pose[:2] - run.gt[k, :2]))))
+    finals.append(float(np.median(err[-3:])))
+    states.append(e.state)
+print(json.dumps({{"torch": "torch" in sys.modules, "finals": finals, "states": states}}))
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO)
     assert out.returncode == 0, out.stderr[-2000:]
     doc = json.loads(out.stdout.strip().splitlines()[-1])
     assert doc["torch"] is False
-    assert np.median(doc["errors"][-3:]) < 0.5, doc
+    assert set(doc["states"]) <= {"tracking", "relocalising", "lost"}
+    assert sum(f < 0.5 for f in doc["finals"]) >= 4, doc
 
 
 def test_cli_exports_and_localizes_with_the_bundle(exported, tmp_path):
@@ -138,3 +149,26 @@ def test_cli_exports_and_localizes_with_the_bundle(exported, tmp_path):
     res = runner.invoke(app, ["localize", str(ing), "--init", "retrieval", "--out", str(tmp_path / "x"),
                               "--config", "ci"])
     assert res.exit_code == 1 and "--bundle" in res.output
+
+
+@pytest.mark.parametrize("while_relocalising", [False, True])
+def test_candidates_are_injected_when_lost_or_through_relocalisation(exported, while_relocalising):
+    from pipeline.evaluation.replay import load_run
+    from pipeline.runtime.localizer import Localizer
+
+    _, ing, _, _, bundle = exported
+    loc = Localizer.from_bundle(bundle, seed=0)
+    loc.filter_config = loc.filter_config.model_copy(update={"inject_while_relocalising": while_relocalising})
+    loc.reset()
+    run = load_run(sorted((ing / "runs").glob("query_*.parquet"))[0])
+    injected, states = [], []
+    for k in range(len(run)):
+        before = loc.filter.state.value
+        e = loc.update(run.odom[k], run.ranges[k], image=ing / run.image_ids[k])
+        if k > 0 and e.candidates is not None:
+            injected.append(before)
+        states.append(before)
+    expected = {"lost", "relocalising"} if while_relocalising else {"lost"}
+    assert set(injected) <= expected
+    assert len(injected) == sum(s in expected for s in states[1:])  # every such step with an image injects
+    assert injected or not while_relocalising  # the seeded filter relocalises first, so this one injects

@@ -11,12 +11,12 @@ from pipeline.evaluation.experiments import CachedRetrieval, Replay, summarise
 from pipeline.evaluation.report_figures import recovery_curves
 
 
-def _replay(errors, kidnaps=(), particles=None, converged=0, recovery=(), mean=0.1):
+def _replay(errors, kidnaps=(), particles=None, converged=0, recovery=(), mean=0.1, median=0.05):
     e = np.asarray(errors, float)
     return Replay("r", 0, np.zeros((len(e), 3)), np.zeros((len(e), 3)), e,
                   np.asarray(particles if particles is not None else np.full(len(e), 100)), ["tracking"] * len(e),
                   list(kidnaps), {"converged_step": converged, "recovery_steps": list(recovery),
-                                  "error_mean_m": mean, "update_ms_mean": 2.0})
+                                  "error_mean_m": mean, "error_median_m": median, "update_ms_mean": 2.0})
 
 
 def test_recovery_curves_align_each_kidnapping_and_stop_at_the_next():
@@ -33,13 +33,14 @@ def test_recovery_curves_align_each_kidnapping_and_stop_at_the_next():
 
 def test_summary_counts_against_hand_computed_values():
     a = _replay([5.0, 0.1, 0.1, 0.1], kidnaps=[2], converged=1, recovery=[3], mean=0.1)
-    b = _replay([9.0, 9.0, 0.2, 0.2], kidnaps=[1, 3], converged=None, recovery=[20, None], mean=None)
+    b = _replay([9.0, 9.0, 0.2, 0.2], kidnaps=[1, 3], converged=None, recovery=[20, None], mean=None, median=None)
     s = summarise([a, b])
     assert (s["replays"], s["converged"], s["converged_step_median"]) == (2, 1, 1.0)
     assert s["kidnaps"] == 3 and s["recovered"] == 2 and s["recovery_steps_median"] == 11.5
     assert s["recovery_steps_max"] == 20 and s["recovered_within_15"] == 1 and s["recovered_within_40"] == 2
     assert s["error_p90_all_m"] == pytest.approx(np.percentile([5, .1, .1, .1, 9, 9, .2, .2], 90))
-    assert s["error_mean_converged_m"] == pytest.approx(0.1)
+    assert s["error_p90_global_m"] == pytest.approx(np.percentile([5, .1, 9], 90))  # up to each first kidnapping
+    assert s["error_mean_converged_m"] == pytest.approx(0.1) and s["error_median_converged_m"] == pytest.approx(0.05)
 
 
 def test_cached_retrieval_describes_each_image_once():
@@ -84,7 +85,7 @@ def test_report_holds_every_experiment_and_figure(report):
         assert (out / f"{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert f"({name}.png)" in (out / "report.md").read_text()
     text = (out / "report.md").read_text()
-    assert "## Table 1" in text and "| 90th-percentile error, with image retrieval" in text
+    assert "## Table 1" in text and "| 90th-percentile error of global localization, with image retrieval" in text
     assert len(doc["table1"]) == len(runs) and all(len(r["candidates"]) == 4 for r in doc["table1"])
     assert (out / "config.yaml").is_file()
 
@@ -99,6 +100,12 @@ def test_summary_figures_recompute_from_the_estimates_tables(report):
         err = np.hypot(np.subtract(t["x"], t["gt_x"]), np.subtract(t["y"], t["gt_y"]))
         np.testing.assert_allclose(t["error_xy"], err)
         assert doc["summary"][m]["error_p90_all_m"] == pytest.approx(np.percentile(err, 90), abs=1e-4)
+        step, kid = np.asarray(t["step"]), np.asarray(t["kidnapped"])
+        replay = np.array([f"{r}/{k}" for r, k in zip(t["run"], t["trial"], strict=True)])
+        first = {r: min([s_ for s_, k, q in zip(step, kid, replay, strict=True) if k and s_ > 0 and q == r],
+                        default=10**9) for r in set(replay)}
+        before = np.array([s_ < first[q] for s_, q in zip(step, replay, strict=True)])
+        assert doc["summary"][m]["error_p90_global_m"] == pytest.approx(np.percentile(err[before], 90), abs=1e-4)
         assert doc["summary"][m]["particles_mean"] == pytest.approx(np.mean(t["particles"]), abs=0.1)
     mcl = tables.read_table(out / "estimates" / "mcl.parquet", "estimates").column("particles").to_numpy()
     cfg = report[0]

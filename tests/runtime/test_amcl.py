@@ -159,3 +159,24 @@ def test_updates_are_gated_and_seeded(world):
     assert a[0].updated and not a[1].updated
     for x, y in zip(a, b, strict=True):
         np.testing.assert_array_equal(x.pose, y.pose)
+
+
+def test_a_false_alarm_keeps_the_right_belief(world):
+    """People in front of the laser for a few scans make the filter declare itself lost; the heaviest
+    particles it keeps (kidnap.keep_particles) bring it straight back instead of a new global search."""
+    occ, runs, scans, scanner = world
+    run, ranges = runs["mapping_00"], scans["mapping_00"]
+    f = make(occ, kidnap={"keep_particles": 100})
+    f.init_pose(run.gt[0])
+    errors, _, _ = replay(f, run, ranges, scanner, stop=20)
+    assert errors[-1] < 0.2
+    blocked = np.full_like(ranges[0], 0.4)  # a crowd a step away, all round
+    k = 20
+    while f.state != FilterState.LOST:
+        f.update(run.odom[k], scan_of(scanner, blocked))
+        k += 1
+        assert k < 30, "three blocked scans must make it lost"
+    near = np.hypot(*(f.particles[:, :2] - run.gt[k - 1, :2]).T) < 0.5
+    assert len(f.particles) == f.cfg.max_particles and near.sum() >= 100
+    errors, _, _ = replay(f, run, ranges, scanner, start=k, stop=k + 6)
+    assert np.all(errors[2:] < 0.3), errors
