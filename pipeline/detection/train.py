@@ -51,7 +51,8 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     from pipeline.detection.builders import build_detector
     from pipeline.detection.data import DetectionDataset, load_samples, repeat_factors, split_by_stop
     from pipeline.detection.inference import pick_device
-    from pipeline.io.atomic import atomic_dir, atomic_file, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.checkpoint import resume_state, save_checkpoint
     from pipeline.progress import progress_bar
 
     d = cfg.detector
@@ -81,15 +82,9 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     ckpt_path = partial / "checkpoint.pt"
     start, history = 0, []
     fingerprint = _fingerprint(d, train)
-    if ckpt_path.is_file():
-        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=True)
-        if ckpt.get("fingerprint") != fingerprint:
-            if not force:
-                raise TrainingError(f"{ckpt_path}: a checkpoint of another training (other detector settings or "
-                                    "training images); rerun with the settings it was made with to resume it, or "
-                                    "--force to discard it and start afresh")
-            ckpt = None
-    if ckpt_path.is_file() and ckpt is not None:
+    ckpt = resume_state(ckpt_path, fingerprint, force=force, error=TrainingError,
+                        what="other detector settings or training images")
+    if ckpt is not None:
         model.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
         if amp and ckpt.get("scaler"):
@@ -124,10 +119,10 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
             partial.mkdir(parents=True, exist_ok=True)
             seed_next = int(rng.integers(0, 2**31))
             rng = np.random.default_rng(seed_next)
-            with atomic_file(ckpt_path, "wb") as fh:
-                torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
-                            "history": history, "rng_seed": seed_next, "torch_rng": torch.get_rng_state(),
-                            "scaler": scaler.state_dict() if amp else {}, "fingerprint": fingerprint}, fh)
+            save_checkpoint(ckpt_path, {"model": model.state_dict(), "optimizer": opt.state_dict(),
+                                        "iteration": it + 1, "history": history, "rng_seed": seed_next,
+                                        "torch_rng": torch.get_rng_state(),
+                                        "scaler": scaler.state_dict() if amp else {}}, fingerprint)
     bar.close()
     train_s = time.perf_counter() - t0
     model.eval()

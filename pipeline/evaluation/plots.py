@@ -67,9 +67,8 @@ def error_cdf_figure(path: Path, curves: dict[str, np.ndarray]) -> Path:
     return save_figure(fig, path)
 
 
-def trajectory_figure(path: Path, occ_map, gt: np.ndarray | None, est: np.ndarray, particles: np.ndarray,
-                      title: str) -> Path:
-    """The map, ground truth and estimated trajectories, and the final particle set."""
+def map_axes(occ_map):
+    """A figure with the occupancy map drawn in map coordinates (free white, occupied black, unknown grey)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -79,11 +78,18 @@ def trajectory_figure(path: Path, occ_map, gt: np.ndarray | None, est: np.ndarra
     img = np.full(grid.shape, 0.75)
     img[grid == 0] = 1.0
     img[grid >= 65] = 0.0
-    extent = (occ_map.origin_x, occ_map.origin_x + grid.shape[1] * occ_map.resolution,
-              occ_map.origin_y, occ_map.origin_y + grid.shape[0] * occ_map.resolution)
     h, w = grid.shape
+    extent = (occ_map.origin_x, occ_map.origin_x + w * occ_map.resolution,
+              occ_map.origin_y, occ_map.origin_y + h * occ_map.resolution)
     fig, ax = plt.subplots(figsize=(8, 8 * h / max(w, 1)))
     ax.imshow(img, cmap="gray", origin="lower", extent=extent, vmin=0, vmax=1, interpolation="nearest")
+    return fig, ax
+
+
+def trajectory_figure(path: Path, occ_map, gt: np.ndarray | None, est: np.ndarray, particles: np.ndarray,
+                      title: str) -> Path:
+    """The map, ground truth and estimated trajectories, and the final particle set."""
+    fig, ax = map_axes(occ_map)
     ax.scatter(particles[:, 0], particles[:, 1], s=1, color="#e76f51", alpha=0.4, label="particles (final)")
     if gt is not None:
         ax.plot(gt[:, 0], gt[:, 1], color="#2a9d8f", lw=1.2, label="ground truth")

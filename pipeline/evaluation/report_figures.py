@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.evaluation.experiments import METHODS, Replay
-from pipeline.evaluation.plots import save_figure
+from pipeline.evaluation.plots import map_axes, save_figure
 
 COLOURS = {"proposed": "#264653", "amcl": "#e76f51", "mcl": "#f4a261", "mixture": "#2a9d8f", "image_only": "#8d99ae"}
 
@@ -102,16 +102,7 @@ def figure10_error_vs_step(path: Path, results: dict[str, list[Replay]]) -> Path
 
 def figure11_kidnap_map(path: Path, occ_map, replay: Replay) -> Path:
     """One kidnapped run on the map: A start, B just before the kidnapping, C where it was carried, D the end."""
-    plt = _plt()
-    grid = np.asarray(occ_map.grid)
-    img = np.full(grid.shape, 0.75)
-    img[grid == 0] = 1.0
-    img[grid >= 65] = 0.0
-    h, w = grid.shape
-    extent = (occ_map.origin_x, occ_map.origin_x + w * occ_map.resolution,
-              occ_map.origin_y, occ_map.origin_y + h * occ_map.resolution)
-    fig, ax = plt.subplots(figsize=(8, 8 * h / max(w, 1)))
-    ax.imshow(img, cmap="gray", origin="lower", extent=extent, vmin=0, vmax=1, interpolation="nearest")
+    fig, ax = map_axes(occ_map)
     cuts = [0, *replay.kidnaps, len(replay.gt)]
     for a, b in zip(cuts[:-1], cuts[1:], strict=True):
         ax.plot(replay.gt[a:b, 0], replay.gt[a:b, 1], color="#2a9d8f", lw=1.6)

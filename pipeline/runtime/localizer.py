@@ -8,7 +8,8 @@ Seed 000's closed loop: at start, the first camera image is described (ONNX dete
 retrieved against the bundle's database (IPA Top-N, RPA re-ranking) and its Top-4 poses, weighted
 4:3:2:1, seed the adaptive MCL; without an image the filter starts uniform over the free space. Whenever
 the filter declares itself lost and an image comes with the update, particles are injected around the
-image's Top-4 (`filter.inject_particles` per step, the paper's 1000).
+image's Top-4 (`filter.inject_particles` per step, the paper's 1000; with
+`filter.inject_while_relocalising`, at every step until it tracks again).
 """
 
 from __future__ import annotations

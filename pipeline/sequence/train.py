@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.config import SitelocConfig, write_effective_config
-from pipeline.errors import InputError, Problem, SitelocError
+from pipeline.errors import InputError, Problem
 from pipeline.io import tables
 
 
@@ -100,7 +100,8 @@ def run_train_sequence(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     from safetensors.torch import save_file
 
     from pipeline.errors import OutputExistsError
-    from pipeline.io.atomic import atomic_dir, atomic_file, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.checkpoint import resume_state, save_checkpoint
     from pipeline.progress import progress_bar
     from pipeline.retrieval.whitening import PCAWhitening
     from pipeline.sequence.model import build_sequence_model, place_labels
@@ -128,17 +129,13 @@ def run_train_sequence(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     ckpt_path = partial / "checkpoint.pt"
     fingerprint = _fingerprint(s, frames, len(places))
     start, history = 0, []
-    if ckpt_path.is_file():
-        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=True)
-        if ckpt.get("fingerprint") != fingerprint and not force:
-            raise SitelocError(f"{ckpt_path}: a checkpoint of another training (other settings or frames); rerun "
-                               "with the settings it was made with to resume it, or --force to start afresh")
-        if ckpt.get("fingerprint") == fingerprint:
-            model.load_state_dict(ckpt["model"])
-            opt.load_state_dict(ckpt["optimizer"])
-            start, history = int(ckpt["epoch"]), [float(v) for v in ckpt["history"]]
-            rng = np.random.default_rng(int(ckpt["rng_seed"]))
-            torch.set_rng_state(ckpt["torch_rng"])
+    ckpt = resume_state(ckpt_path, fingerprint, force=force, what="other sequence settings or frames")
+    if ckpt is not None:
+        model.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        start, history = int(ckpt["epoch"]), [float(v) for v in ckpt["history"]]
+        rng = np.random.default_rng(int(ckpt["rng_seed"]))
+        torch.set_rng_state(ckpt["torch_rng"])
     x_all, y_all = torch.from_numpy(frames.features), torch.from_numpy(labels)
     t0 = time.perf_counter()
     model.train()
@@ -157,10 +154,9 @@ def run_train_sequence(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
         partial.mkdir(parents=True, exist_ok=True)
         seed_next = int(rng.integers(0, 2**31))
         rng = np.random.default_rng(seed_next)
-        with atomic_file(ckpt_path, "wb") as fh:
-            torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch + 1,
-                        "history": history, "rng_seed": seed_next, "torch_rng": torch.get_rng_state(),
-                        "fingerprint": fingerprint}, fh)
+        save_checkpoint(ckpt_path, {"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch + 1,
+                                    "history": history, "rng_seed": seed_next,
+                                    "torch_rng": torch.get_rng_state()}, fingerprint)
     train_s = time.perf_counter() - t0
     model.eval()
     db_desc = describe_windows(model, frames.features, train)

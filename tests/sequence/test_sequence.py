@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from pipeline.errors import SitelocError
 from pipeline.sequence.model import place_labels, windows
 from pipeline.sequence.train import recall_within
 
@@ -112,7 +113,7 @@ def test_training_builds_a_whitened_database_and_resumes(frames, tmp_path, monke
     calls.clear()
     monkeypatch.setattr(torch.nn.functional, "cross_entropy", lambda *a, **k: (calls.append(1), real(*a, **k))[1])
     other = load_config("ci", [*MICRO_SETS, *FAST, "sequence.lr=0.01"])
-    with pytest.raises(T.SitelocError, match="another training"):
+    with pytest.raises(SitelocError, match="another training"):
         T.run_train_sequence(other, inputs={"frames": fr}, outputs={"out": tmp_path / "r"}, progress=False)
     again = T.run_train_sequence(cfg, inputs={"frames": fr}, outputs={"out": tmp_path / "r"}, progress=False)
     assert len(calls) == 2 * math.ceil(m["train_windows"] / 75)
