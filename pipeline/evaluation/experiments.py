@@ -96,6 +96,26 @@ def query_runs(data: Path, names: list[str] | None) -> list:
     return runs
 
 
+def check_same_map(bundle_map, data: Path) -> None:
+    """Refuse a site whose map is not the bundle's: its runs' poses would be measured in another frame."""
+    from pipeline.io.map_yaml import read_map
+
+    path = Path(data) / "map.yaml"
+    if not path.is_file():
+        raise InputError(f"{data}: no map.yaml", [Problem(str(path), "missing",
+                                                          fix="point DATA at the output of `siteloc ingest`")])
+    occ = read_map(path)
+    same = (occ.grid.shape == bundle_map.grid.shape and np.array_equal(occ.grid, bundle_map.grid)
+            and np.allclose([occ.resolution, occ.origin_x, occ.origin_y, occ.origin_yaw],
+                            [bundle_map.resolution, bundle_map.origin_x, bundle_map.origin_y, bundle_map.origin_yaw]))
+    if not same:
+        raise InputError(f"{data}: not the site this bundle was exported for", [Problem(
+            str(path), f"its map ({occ.width} x {occ.height} cells at {occ.resolution} m, origin {occ.origin_x}, "
+            f"{occ.origin_y}) differs from the bundle's ({bundle_map.width} x {bundle_map.height} at "
+            f"{bundle_map.resolution} m, origin {bundle_map.origin_x}, {bundle_map.origin_y})",
+            fix="evaluate a bundle on the ingested site it was exported from")])
+
+
 def _replay(run, trial: int, rep: dict, threshold_m: float, hold: int) -> Replay:
     from pipeline.evaluation.metrics import replay_metrics
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.config import SitelocConfig, write_effective_config
-from pipeline.evaluation.experiments import METHODS, Replay, query_runs, run_experiments, summarise
+from pipeline.evaluation.experiments import METHODS, Replay, check_same_map, query_runs, run_experiments, summarise
 
 # Seed 000, section 4.3-4.4: what the paper reports for its floor.
 PAPER = {"p90_with_m": 2.0, "p90_without_m": 6.0, "mean_error_m": 0.40, "recovery_steps": 40, "map_at_4": 0.742}
@@ -139,6 +139,7 @@ def run_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[s
         raise OutputExistsError(out)
     t0 = time.perf_counter()
     loc = Localizer.from_bundle(Path(inputs["bundle"]), seed=cfg.filter.seed)
+    check_same_map(loc.occupancy, data)
     runs = query_runs(data, e.runs or None)
     results, retrieve = run_experiments(loc, data, runs, trials=e.trials, threshold_m=e.converge_threshold_m,
                                         hold=e.converge_hold, progress=progress)

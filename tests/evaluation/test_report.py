@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
+import yaml
 
 from pipeline.evaluation.experiments import CachedRetrieval, Replay, summarise
 from pipeline.evaluation.report_figures import recovery_curves
@@ -167,6 +169,14 @@ def test_cli_reports_and_refuses_bad_inputs_clearly(micro_bundle, tmp_path):
                               "--config", "ci"])
     assert res.exit_code == 1 and "nope" in res.output and "Traceback" not in res.output
     assert not (tmp_path / "x").exists()
+    other = tmp_path / "other"  # the same runs on a map shifted by a metre: another site's frame
+    shutil.copytree(ing / "runs", other / "runs")
+    shutil.copy(ing / "map.pgm", other / "map.pgm")
+    doc = yaml.safe_load((ing / "map.yaml").read_text())
+    doc["origin"][0] += 1.0
+    (other / "map.yaml").write_text(yaml.safe_dump(doc))
+    res = runner.invoke(app, ["evaluate", str(bundle), str(other), "--out", str(tmp_path / "z"), "--config", "ci"])
+    assert res.exit_code == 1 and "not the site this bundle was exported for" in res.output, res.output
     res = runner.invoke(app, ["evaluate", str(tmp_path / "missing"), str(ing), "--out", str(tmp_path / "y"),
                               "--config", "ci"])
     assert res.exit_code == 1 and "missing" in res.output and "Traceback" not in res.output
