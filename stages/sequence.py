@@ -76,7 +76,7 @@ def train_sequence(
         typer.echo(f"{m['train_windows']} windows, {m['places']} places, loss {m['loss_history'][0]:.3f} -> "
                    f"{m['loss_history'][-1]:.3f}, descriptor {m['dims']}-d ({m['dims_cap']})")
         for name, r in m["recall"].items():
-            reach = f", reachable {r['reachable_2m']:.3f}" if "reachable_2m" in r else ""
-            typer.echo(f"  {name}: recall@1 {r['recall_at_1_2m']:.3f}, @4 {r['recall_at_4_2m']:.3f} (2 m, "
-                       f"{r['queries']} queries{reach})")
+            typer.echo(f"  {name}: recall@1 {r['recall_at_1_2m']:.3f}, @4 {r['recall_at_4_2m']:.3f} within 2 m "
+                       f"({r['queries']} queries; {r['reachable_2m']:.0%} have a mapping window that close: "
+                       f"among those @1 {r['recall_at_1_reachable_2m']:.3f}, @4 {r['recall_at_4_reachable_2m']:.3f})")
         echo_path("model", path)

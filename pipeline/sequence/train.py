@@ -205,18 +205,24 @@ def evaluate_lengths(model, whitening, db: np.ndarray, frames: Frames, train: np
         q = whitening.transform(describe_windows(model, frames.features, win))
         top = np.argsort(-(q @ db.T), axis=1)[:, :4]
         ms = (time.perf_counter() - t0) * 1000.0 / len(win)
-        qxy = frames.pose[win[:, -1], :2]
-        out[f"length_{n}"] = {"queries": int(len(win)), "recall_at_1_2m": recall_within(db_xy[top[:, :1]], qxy, 2.0),
-                              "recall_at_4_2m": recall_within(db_xy[top], qxy, 2.0), "ms_per_query": round(ms, 4),
-                              # the ceiling: queries with any database window within 2 m
-                              "reachable_2m": recall_within(np.broadcast_to(db_xy, (len(qxy), *db_xy.shape)), qxy,
-                                                            2.0)}
+        out[f"length_{n}"] = {**_recalls(db_xy[top], frames.pose[win[:, -1], :2], db_xy), "queries": int(len(win)),
+                              "ms_per_query": round(ms, 4)}
     rows = np.unique(train[:, -1])
     single = PCAWhitening(whitening.n_components_).fit(frames.features[rows])
     qrows = np.flatnonzero(np.isin(frames.run, queries))
     top = np.argsort(-(single.transform(frames.features[qrows]) @ single.transform(frames.features[rows]).T),
                      axis=1)[:, :4]
-    qxy, dxy = frames.pose[qrows, :2], frames.pose[rows, :2]
-    out["single_frame"] = {"queries": int(len(qrows)), "recall_at_1_2m": recall_within(dxy[top[:, :1]], qxy, 2.0),
-                           "recall_at_4_2m": recall_within(dxy[top], qxy, 2.0)}
+    dxy = frames.pose[rows, :2]
+    out["single_frame"] = {**_recalls(dxy[top], frames.pose[qrows, :2], dxy), "queries": int(len(qrows))}
+    return out
+
+
+def _recalls(found_xy: np.ndarray, query_xy: np.ndarray, db_xy: np.ndarray, radius: float = 2.0) -> dict:
+    """Recall@1 and @4 within `radius`, over all queries and over the reachable ones (those with any
+    database entry within `radius`: the mapping runs do not pass everywhere the query runs go)."""
+    reach = (np.hypot(*(query_xy[:, None, :] - db_xy[None]).transpose(2, 0, 1)) <= radius).any(axis=1)
+    out = {"reachable_2m": float(reach.mean()) if len(reach) else float("nan")}
+    for k in (1, 4):
+        out[f"recall_at_{k}_2m"] = recall_within(found_xy[:, :k], query_xy, radius)
+        out[f"recall_at_{k}_reachable_2m"] = recall_within(found_xy[reach, :k], query_xy[reach], radius)
     return out

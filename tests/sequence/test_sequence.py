@@ -38,6 +38,18 @@ def test_recall_within_counts_any_of_the_found():
     assert recall_within(found, np.array([[5.5, 5.0], [0.0, 0.0]]), 1.0) == 0.5
 
 
+def test_recalls_over_the_reachable_queries():
+    from pipeline.sequence.train import _recalls
+
+    db = np.array([[0.0, 0.0], [10.0, 0.0]])
+    queries = np.array([[0.5, 0.0], [10.5, 0.0], [50.0, 0.0]])  # the third has nothing within 2 m
+    found = db[np.array([[1, 0], [1, 0], [0, 1]])]  # first: right only at rank 2; second: right at rank 1
+    r = _recalls(found, queries, db)
+    assert r["reachable_2m"] == pytest.approx(2 / 3)
+    assert r["recall_at_1_2m"] == pytest.approx(1 / 3) and r["recall_at_4_2m"] == pytest.approx(2 / 3)
+    assert r["recall_at_1_reachable_2m"] == 0.5 and r["recall_at_4_reachable_2m"] == 1.0
+
+
 @pytest.fixture(scope="module")
 def frames(micro_site, tmp_path_factory):
     from pipeline.config import load_config
