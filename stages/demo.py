@@ -13,8 +13,8 @@ HELP = """Run the main job end to end on data that ships with the project.
 
 This renders the reference site of the config (`synth.site`: office for the demo preset, a micro
 site for ci; see `siteloc synth`) and ingests it, fine-tunes the detector on it and scores it on the
-held-out stops (`siteloc train-detector`, `evaluate-detector`; about 15 minutes on 2 cores for the demo
-preset), extracts IPA / RPA descriptors (`siteloc extract`; about 3.5 minutes on 2 cores for the
+held-out stops (`siteloc train-detector`, `evaluate-detector`; about 6 minutes on 2 cores for the demo
+preset), extracts IPA / RPA descriptors (`siteloc extract`; about 2.5 minutes on 2 cores for the
 office site), builds and measures the retrieval database (`build-index`, `evaluate-retrieval`), exports the
 deployable bundle (`siteloc export`), localizes the site's query runs from the bundle alone, camera
 frames included, beside the paper's baselines, and writes the report (`siteloc evaluate`). Then it
