@@ -29,7 +29,7 @@ retrieval, mean error after convergence, steps to converge, steps to recover fro
 Figures 8 (error CDF with / without retrieval), 9 (particles and error, MCL vs KLD-AMCL), 10 (error
 per step: mixture MCL, image-only, proposed), 11 (a kidnapped run on the map) and 12 (recovery from
 every kidnapping). Also metrics.json, estimates/<method>.parquet (per step) and config.yaml.
-Each frame is retrieved once (about 0.3 s on a CPU) and shared by the methods that use it.
+Each frame is retrieved once (0.04-0.07 s on 2 CPU cores) and shared by the methods that use it.
 
 Example: siteloc evaluate bundles/office-0.1.0 data/reference/ingested --out reports/office
 """

@@ -45,7 +45,6 @@ class Replay:
     gt: np.ndarray  # (T, 3)
     errors: np.ndarray  # (T,) position error, m
     particles: np.ndarray  # (T,)
-    states: list[str]
     kidnaps: list[int]
     metrics: dict
     rep: dict = field(repr=False, default_factory=dict)  # the raw replay (for the estimates table)
@@ -58,7 +57,7 @@ class Replay:
 
 
 class CachedRetrieval:
-    """A Localizer's `candidates`, computed once per image file (deterministic, and 0.3 s each on a CPU)."""
+    """A Localizer's `candidates`, computed once per image file (deterministic; 0.04-0.07 s each on 2 cores)."""
 
     def __init__(self, loc):
         self._candidates = loc.candidates
@@ -122,10 +121,10 @@ def _replay(run, trial: int, rep: dict, threshold_m: float, hold: int) -> Replay
     err = np.hypot(*(rep["pose"][:, :2] - run.gt[:, :2]).T)
     kid = [int(k) for k in np.nonzero(run.kidnapped)[0] if k > 0]
     m = replay_metrics(err, kid, rep["particles"], rep["ms"], rep["updated"], threshold_m=threshold_m, hold=hold)
+    replay = Replay(run.name, trial, rep["pose"], run.gt, err, np.asarray(rep["particles"]), kid, m, rep)
     m["error_p90_all_m"] = round(float(np.percentile(err, 90)), 4)
-    m["error_p90_global_m"] = round(float(np.percentile(err[: kid[0]] if kid else err, 90)), 4)
-    return Replay(run.name, trial, rep["pose"], run.gt, err, np.asarray(rep["particles"]), list(rep["state"]), kid,
-                  m, rep)
+    m["error_p90_global_m"] = round(float(np.percentile(replay.global_errors, 90)), 4)
+    return replay
 
 
 def image_only_replay(run, data: Path, retrieve: CachedRetrieval) -> dict:

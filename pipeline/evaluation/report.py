@@ -17,6 +17,7 @@ import numpy as np
 
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.evaluation.experiments import METHODS, Replay, check_same_map, query_runs, run_experiments, summarise
+from pipeline.runtime.motion import wrap_angle
 
 # Seed 000, section 4.3-4.4: what the paper reports for its floor.
 PAPER = {"p90_with_m": 2.0, "p90_without_m": 6.0, "mean_error_m": 0.40, "recovery_steps": 40, "map_at_4": 0.742}
@@ -35,7 +36,7 @@ def table1(results: dict[str, list[Replay]], retrieve, data: Path, runs: list) -
         first = next(i for i, im in enumerate(run.image_ids) if im)
         cands = retrieve(Path(data) / run.image_ids[first])
         s = (rep.kidnaps[0] - 1) if rep.kidnaps else len(rep.errors) - 1
-        dtheta = float(np.degrees(np.angle(np.exp(1j * (rep.pose[s, 2] - rep.gt[s, 2])))))
+        dtheta = float(np.degrees(wrap_angle(rep.pose[s, 2] - rep.gt[s, 2])))
         rows.append({"run": rep.run, "step": s, "candidates": [[round(float(v), 3) for v in c] for c in cands],
                      "candidate_errors_m": [round(float(np.hypot(*(c[:2] - run.gt[first, :2]))), 3) for c in cands],
                      "fine": [round(float(v), 3) for v in rep.pose[s]],
@@ -160,7 +161,7 @@ def run_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[s
         for m, reps in results.items():
             rows: dict[str, list] = {f.name: [] for f in tables.ESTIMATES}
             for r in reps:
-                err_t = np.abs(np.angle(np.exp(1j * (r.pose[:, 2] - r.gt[:, 2]))))
+                err_t = np.abs(wrap_angle(r.pose[:, 2] - r.gt[:, 2]))
                 for k, v in estimate_columns(by_name[r.run], r.trial, r.rep, r.errors, err_t).items():
                     rows[k].extend(list(v))
             tables.write_table(tmp / "estimates" / f"{m}.parquet", tables.to_table("estimates", rows), "estimates",

@@ -86,9 +86,9 @@ def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
         raise InputError(f"{data}: {len(missing)} frames are missing",
                          [Problem(str(data / m), "file is missing", fix="re-run `siteloc ingest`")
                           for m in missing[:10]])
-    from pipeline.detection.inference import load_image
+    from pipeline.detection.inference import load_image, pick_device
 
-    enc = FrameEncoder(s.frame_weights, s.frame_size, device="cpu" if s.device == "cpu" else _auto(s.device))
+    enc = FrameEncoder(s.frame_weights, s.frame_size, device=str(pick_device(s.device)))
     logits = []
     bar = progress_bar(total=len(frames), desc="frame features", unit="frame", enabled=progress)
     for i in range(0, len(frames), s.batch):
@@ -110,8 +110,3 @@ def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
         write_effective_config(cfg, tmp, stage="frame-features", inputs=inputs)
     return out
 
-
-def _auto(device: str) -> str:
-    from pipeline.detection.inference import pick_device
-
-    return str(pick_device(device))

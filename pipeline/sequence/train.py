@@ -42,7 +42,6 @@ class Frames:
         self.pose = np.column_stack([np.asarray([np.nan if v is None else v for v in cols[k]], np.float64)[order]
                                      for k in ("gt_x", "gt_y", "gt_theta")])
         self.features = tables.descriptor_matrix(t)[order].astype(np.float32)
-        self.image_ids = np.asarray(t.column("image_id").to_pylist())[order]
 
     def windows(self, runs: list[str], length: int, breaks: dict[str, np.ndarray] | None = None) -> np.ndarray:
         from pipeline.sequence.model import windows

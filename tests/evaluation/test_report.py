@@ -16,9 +16,9 @@ from pipeline.evaluation.report_figures import recovery_curves
 def _replay(errors, kidnaps=(), particles=None, converged=0, recovery=(), mean=0.1, median=0.05):
     e = np.asarray(errors, float)
     return Replay("r", 0, np.zeros((len(e), 3)), np.zeros((len(e), 3)), e,
-                  np.asarray(particles if particles is not None else np.full(len(e), 100)), ["tracking"] * len(e),
-                  list(kidnaps), {"converged_step": converged, "recovery_steps": list(recovery),
-                                  "error_mean_m": mean, "error_median_m": median, "update_ms_mean": 2.0})
+                  np.asarray(particles if particles is not None else np.full(len(e), 100)), list(kidnaps),
+                  {"converged_step": converged, "recovery_steps": list(recovery),
+                   "error_mean_m": mean, "error_median_m": median, "update_ms_mean": 2.0})
 
 
 def test_recovery_curves_align_each_kidnapping_and_stop_at_the_next():
