@@ -2,7 +2,8 @@
 
 The reference site of the config (`synth.site`, office for the demo) is rendered and ingested, the
 detector is fine-tuned on it and scored on its held-out stops, IPA / RPA descriptors are extracted, the
-whitened retrieval database is built and measured, the deployable bundle is exported, and the site's
+whitened retrieval database is built and measured, the image-sequence LSTM is trained on the mapping
+runs' frames, the deployable bundle is exported, and the site's
 query runs are localized from the bundle alone (camera frames + odometry + laser, as a robot would)
 beside the paper's baselines (`siteloc evaluate`: reports/<site>/report.md);
 then every real CARMEN log becomes runs + map and the documented example site is ingested.
@@ -124,7 +125,8 @@ def run_demo(
     steps.append(DemoStep("evaluate-detector", out, reused, json.loads((out / "metrics.json").read_text())))
     steps += _retrieval_and_bundle(cfg, ingested, detector, data, Path(outputs.get("bundles", data.parent / "bundles")),
                                    Path(outputs.get("reports", data.parent / "reports")),
-                                   detector_reused=steps[-2].reused, force=force, progress=progress)
+                                   detector_reused=steps[-2].reused, ingest_reused=steps[1].reused, models=models,
+                                   force=force, progress=progress)
 
     logs = sorted(carmen_dir.glob("*.log.gz")) + sorted(carmen_dir.glob("*.log")) if carmen_dir.is_dir() else []
     for log in logs:
@@ -150,9 +152,11 @@ def run_demo(
 
 
 def _retrieval_and_bundle(cfg: SitelocConfig, ingested: Path, detector: Path, data: Path, bundles: Path,
-                          reports: Path, *, detector_reused: bool, force: bool, progress: bool) -> list[DemoStep]:
-    """extract -> build-index -> evaluate-retrieval -> export -> evaluate (the query runs localized from the
-    bundle, with the paper's baselines).
+                          reports: Path, *, detector_reused: bool, ingest_reused: bool, models: Path, force: bool,
+                          progress: bool) -> list[DemoStep]:
+    """extract -> build-index -> evaluate-retrieval -> frame-features -> train-sequence -> export -> evaluate
+    (the query runs localized from the bundle, with the paper's baselines). The sequence steps run when the
+    site has mapping runs with camera frames.
 
     A step is reused when its output is complete, was made with the same config section, and every
     step it reads was reused too."""
@@ -162,6 +166,8 @@ def _retrieval_and_bundle(cfg: SitelocConfig, ingested: Path, detector: Path, da
     from pipeline.retrieval.database import run_build_index
     from pipeline.retrieval.evaluate import run_evaluate_retrieval
     from pipeline.retrieval.extract import run_extract
+    from pipeline.sequence.frames import run_frame_features
+    from pipeline.sequence.train import run_train_sequence
 
     steps: list[DemoStep] = []
     ref = data / "reference"
@@ -182,14 +188,23 @@ def _retrieval_and_bundle(cfg: SitelocConfig, ingested: Path, detector: Path, da
     step("evaluate-retrieval", ref / "retrieval-eval", "metrics.json", extracted, "retrieval",
          lambda out: run_evaluate_retrieval(cfg, inputs={"descriptors": descriptors, "data": ingested},
                                             outputs={"out": out}, force=True, progress=progress))
+    sequence, sequenced = None, True
+    if any((ingested / "runs").glob("mapping*.parquet")):
+        framed = step("frame-features", ref / "frames", "report.json", ingest_reused, "sequence",
+                      lambda out: run_frame_features(cfg, inputs={"data": ingested}, outputs={"out": out}, force=True,
+                                                     progress=progress))
+        sequence = models / "sequence"
+        sequenced = step("train-sequence", sequence, "metrics.json", framed, "sequence",
+                         lambda out: run_train_sequence(cfg, inputs={"frames": ref / "frames", "data": ingested},
+                                                        outputs={"out": out}, force=True, progress=progress))
     site = read_site(ingested / "site.yaml").name if (ingested / "site.yaml").is_file() else ingested.name
     bundle = bundles / f"{site}-{cfg.export.version}"
     manifest_path = bundle / "manifest.json"
-    exported = (indexed and not force and manifest_path.is_file()
+    exported = (indexed and sequenced and not force and manifest_path.is_file()
                 and json.loads(manifest_path.read_text()).get("config") == cfg.model_dump(mode="json"))
     if not exported:
-        run_export(cfg, inputs={"model": detector, "index": index, "data": ingested}, outputs={"out": bundles},
-                   force=True)
+        run_export(cfg, inputs={"model": detector, "index": index, "data": ingested,
+                                **({"sequence": sequence} if sequence else {})}, outputs={"out": bundles}, force=True)
     manifest = json.loads(manifest_path.read_text())
     parity = json.loads((bundle / "models" / "describer.json").read_text())["parity"]["max_differences"]
     steps.append(DemoStep("export", bundle, exported, {"files": len(manifest["files"]), "parity": parity,

@@ -15,15 +15,17 @@ This renders the reference site of the config (`synth.site`: office for the demo
 site for ci; see `siteloc synth`) and ingests it, fine-tunes the detector on it and scores it on the
 held-out stops (`siteloc train-detector`, `evaluate-detector`; about 6 minutes on 2 cores for the demo
 preset), extracts IPA / RPA descriptors (`siteloc extract`; about 2.5 minutes on 2 cores for the
-office site), builds and measures the retrieval database (`build-index`, `evaluate-retrieval`), exports the
-deployable bundle (`siteloc export`), localizes the site's query runs from the bundle alone, camera
+office site), builds and measures the retrieval database (`build-index`, `evaluate-retrieval`), encodes the run
+frames and trains the image-sequence LSTM on the mapping runs (`siteloc frame-features`,
+`train-sequence`; about 2 minutes), exports the deployable bundle with it (`siteloc export
+--sequence`), localizes the site's query runs from the bundle alone, camera
 frames included, beside the paper's baselines, and writes the report (`siteloc evaluate`). Then it
 ingests every real CARMEN laser log in ../shared/data/carmen (`siteloc ingest-log`) and the example
 capture directory of docs/example-site, and prints a summary.
 
 Finished steps are reused, so an interrupted demo resumes; --force redoes everything.
-Outputs: DATA/reference/{site,ingested,descriptors,index,retrieval-eval}/, MODELS/detector/,
-MODELS/detector-eval/, BUNDLES/<site>-<version>/ (+ .tar.gz), REPORTS/<site>/report.md,
+Outputs: DATA/reference/{site,ingested,descriptors,index,retrieval-eval,frames}/, MODELS/detector/,
+MODELS/detector-eval/, MODELS/sequence/, BUNDLES/<site>-<version>/ (+ .tar.gz), REPORTS/<site>/report.md,
 DATA/carmen/<log>/, DATA/example/ingested/, DATA/demo-summary.json.
 """
 
@@ -85,6 +87,13 @@ def _describe(r: dict) -> tuple[str, str]:
         w, h = r["map_size_m"]
         return (f"{r['scans']} x {r['beams']} scans", f"map {w:.1f} x {h:.1f} m, endpoints on walls "
                 f"{r['endpoint_on_occupied_share_tol0']:.2f} / {r['endpoint_on_occupied_share_tol1']:.2f}")
+    if "train_windows" in r:
+        six = r["recall"].get("length_6") or next(iter(r["recall"].values()), {})
+        return (f"{r['train_windows']} windows, {r['places']} places",
+                f"6 frames R@1 {six.get('recall_at_1_2m', float('nan')):.3f} (2 m), single frame "
+                f"{r['recall'].get('single_frame', {}).get('recall_at_1_2m', float('nan')):.3f}")
+    if "frames" in r and "dim" in r:
+        return f"{r['frames']} frames, {len(r['runs'])} runs", f"{r['dim']}-d logits"
     if "loss_history" in r:
         return (f"{r['train_images']} train images",
                 f"loss {r['loss_first']:.3f} -> {r['loss_last_50_mean']:.3f}, {r['iterations_per_s']} it/s")
@@ -103,7 +112,8 @@ def _describe(r: dict) -> tuple[str, str]:
     if "table1" in r:
         s, w = r["summary"]["proposed"], r["summary"]["amcl"]
         return (f"{len(r['runs'])} query runs x {r['trials']}", f"global p90 error {s['error_p90_global_m']:.2f} m "
-                f"(no camera {w['error_p90_global_m']:.2f} m), kidnappings {s['recovered']}/{s['kidnaps']} recovered")
+                f"(no camera {w['error_p90_global_m']:.2f} m), kidnappings {s['recovered']}/{s['kidnaps']} recovered, "
+                f"{s['recovered_within_15']} within 15 steps")
     if "summary" in r:
         s = list(r["summary"].values())
         if not any("converged" in v for v in s):

@@ -20,6 +20,11 @@ manifest.json, written last: schema and bundle versions, site, creation time, co
 config, the dvc.lock hash and every file's sha256 and size. The runtime (`Localizer.from_bundle`)
 refuses a bundle whose files do not match it.
 
+With --sequence (the output of `siteloc train-sequence`), the bundle also carries the frame encoder
+(EfficientNet-Lite0 logits) and the sequence LSTM as ONNX, each checked against torch, and the sequence
+database: the Localizer can then re-localize from its last frames after a kidnapping
+(filter.relocalise_with: sequence or both).
+
 Example: siteloc export models/office/detector data/office/index data/office/ingested --out bundles
 """
 
@@ -28,6 +33,9 @@ def export(
     model: Annotated[Path, typer.Argument(help="A trained detector.", show_default=False)],
     index: Annotated[Path, typer.Argument(help="The retrieval database (build-index).", show_default=False)],
     data: Annotated[Path, typer.Argument(help="The ingested site.", show_default=False)],
+    sequence: Annotated[Path | None, typer.Option(
+        "--sequence", help="A trained sequence LSTM (train-sequence): adds image-sequence re-localization.",
+        show_default=False)] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Directory the bundle goes into.")] = Path("bundles"),
     version: Annotated[str | None, typer.Option("--version", help="Bundle version [default: export.version].")] = None,
     config: ConfigOpt = "demo",
@@ -41,14 +49,19 @@ def export(
         from pipeline.bundle.export import run_export
 
         cfg = load(config, (set_ or []) + ([f"export.version={json.dumps(version)}"] if version else []))  # a string
-        bundle = run_export(cfg, inputs={"model": model, "index": index, "data": data}, outputs={"out": out},
-                            force=force)
+        inputs = {"model": model, "index": index, "data": data, **({"sequence": sequence} if sequence else {})}
+        bundle = run_export(cfg, inputs=inputs, outputs={"out": out}, force=force)
         manifest = json.loads((bundle / "manifest.json").read_text())
         parity = json.loads((bundle / "models" / "describer.json").read_text())["parity"]["max_differences"]
         size = sum(e["size"] for e in manifest["files"].values())
         typer.echo(f"{len(manifest['files'])} files, {size / 2**20:.1f} MiB; ONNX vs torch: map "
                    f"{parity['feature_map_abs']:.1e}, IPA {parity['ipa_abs']:.1e}, RPA {parity['rpa_abs']:.1e}, "
                    f"detection scores {parity['score_abs']:.1e}")
+        if sequence:
+            seq = json.loads((bundle / "models" / "sequence.json").read_text())
+            typer.echo(f"sequence re-localization: {seq['length']} frames; ONNX vs torch: frame logits "
+                       f"{seq['frames']['parity']['max_abs']:.1e}, LSTM "
+                       f"{max(seq['lstm_parity']['max_abs_by_length'].values()):.1e}")
         echo_path("bundle", bundle)
         if cfg.export.archive:
             echo_path("archive", bundle.with_name(bundle.name + ".tar.gz"))

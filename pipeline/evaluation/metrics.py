@@ -2,7 +2,8 @@
 
 "Converged at s" means the position error stays below `threshold_m` for `hold` consecutive steps from s
 (or to the end of the run when fewer remain). Accuracy is measured over the steps where the filter is
-converged: from the first convergence on, minus each kidnapping's interval until it recovers.
+converged: from the first convergence on, minus each kidnapping's interval until it recovers. A
+kidnapping's final error is the median error over the last `hold` steps before the next one (or the end).
 """
 
 from __future__ import annotations
@@ -30,13 +31,16 @@ def replay_metrics(errors: np.ndarray, kidnaps: list[int], particles: np.ndarray
     errors = np.asarray(errors, dtype=np.float64)
     converged = first_settled(errors, 0, threshold_m, hold)
     mask = np.zeros(len(errors), bool)
-    recoveries = []
+    recoveries, finals = [], []
     if converged is not None:
         mask[converged:] = True
-    for k in kidnaps:
+    for i, k in enumerate(kidnaps):
         back = first_settled(errors, k, threshold_m, hold)
         recoveries.append(None if back is None else back - k)
         mask[k: (back if back is not None else len(errors))] = False
+        # Where the filter ends up before the next kidnapping: the median of that segment's last `hold` steps.
+        end = kidnaps[i + 1] if i + 1 < len(kidnaps) else len(errors)
+        finals.append(round(float(np.median(errors[max(k, end - hold):end])), 4) if end > k else None)
     good = errors[mask]
     ms = np.asarray(update_ms)[np.asarray(updated, bool)]
 
@@ -52,6 +56,7 @@ def replay_metrics(errors: np.ndarray, kidnaps: list[int], particles: np.ndarray
         "kidnaps": [int(k) for k in kidnaps],
         "recovery_steps": recoveries,
         "recovered": int(sum(r is not None for r in recoveries)),
+        "recovery_final_error_m": finals,
         "particles_mean": stat(np.mean, np.asarray(particles)),
         "particles_max": int(np.max(particles)) if len(particles) else 0,
         "update_ms_mean": stat(np.mean, ms),

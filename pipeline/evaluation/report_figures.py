@@ -10,7 +10,8 @@ import numpy as np
 from pipeline.evaluation.experiments import METHODS, Replay
 from pipeline.evaluation.plots import map_axes, save_figure
 
-COLOURS = {"proposed": "#264653", "amcl": "#e76f51", "mcl": "#f4a261", "mixture": "#2a9d8f", "image_only": "#8d99ae"}
+COLOURS = {"proposed": "#264653", "sequence": "#6a4c93", "image_reloc": "#43aa8b",
+           "amcl": "#e76f51", "mcl": "#f4a261", "mixture": "#2a9d8f", "image_only": "#8d99ae"}
 
 
 def _plt():
@@ -140,11 +141,13 @@ def recovery_curves(replays: list[Replay], before: int, after: int) -> np.ndarra
 
 def figure12_kidnap_recovery(path: Path, results: dict[str, list[Replay]], before: int = 5,
                              after: int = 60) -> Path:
-    """Error around each kidnapping (faint) and the median over kidnappings (bold), for each method."""
+    """Error around each kidnapping (faint) and the median over kidnappings (bold), for each method: the
+    paper's MCL (here KLD-AMCL without a camera), image-based re-localization and the sequence method."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(8, 4.2))
     x = np.arange(-before, after)
-    for m in ("amcl", "mixture", "proposed"):
+    for m in ("amcl", "image_reloc", "sequence", "proposed") if "sequence" in results else ("amcl", "mixture",
+                                                                                             "proposed"):
         curves = recovery_curves(results[m], before, after)
         if not len(curves):
             continue

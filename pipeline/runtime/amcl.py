@@ -105,7 +105,7 @@ class AdaptiveMCL:
         """Weighted candidate poses (image retrieval's Top-K; 4:3:2:1 by default), each with a Gaussian spread."""
         self._reset(self._around(poses, weights, n or self.cfg.max_particles), FilterState.RELOCALISING)
 
-    def inject(self, poses, weights=None, n: int | None = None) -> int:
+    def inject(self, poses, weights=None, n: int | None = None, std_theta: float | None = None) -> int:
         """Add n particles drawn around candidate poses (the paper: 1000 per step while lost).
 
         The set grows by n up to max_particles; beyond that the lightest old particles make room. New
@@ -114,7 +114,7 @@ class AdaptiveMCL:
         n = min(n if n is not None else self.cfg.inject_particles, self.cfg.max_particles)
         if n <= 0:
             return 0
-        new = self._around(poses, weights, n)
+        new = self._around(poses, weights, n, std_theta)
         room = self.cfg.max_particles - n
         if len(self.particles) > room:
             keep = np.argsort(-self.log_w, kind="stable")[:room]
@@ -128,7 +128,7 @@ class AdaptiveMCL:
         self._force = True
         return n
 
-    def _around(self, poses, weights, n: int) -> np.ndarray:
+    def _around(self, poses, weights, n: int, std_theta: float | None = None) -> np.ndarray:
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
         if weights is None:
             w = np.asarray(self.cfg.candidate_weights[: len(poses)], dtype=np.float64)
@@ -137,8 +137,8 @@ class AdaptiveMCL:
             w = np.asarray(weights, dtype=np.float64)
         if len(w) != len(poses) or not np.all(np.isfinite(w)) or w.sum() <= 0 or np.any(w < 0):
             raise ValueError(f"candidate weights {w.tolist()} do not fit {len(poses)} candidate poses")
-        return self.map.sample_around(poses, w, n, self.cfg.init_std_xy, math.radians(self.cfg.init_std_theta_deg),
-                                      self.rng)
+        std_theta = math.radians(self.cfg.init_std_theta_deg) if std_theta is None else std_theta
+        return self.map.sample_around(poses, w, n, self.cfg.init_std_xy, std_theta, self.rng)
 
     # -------------------------------------------------------------------------------------------- update
 

@@ -9,7 +9,13 @@ retrieved against the bundle's database (IPA Top-N, RPA re-ranking) and its Top-
 4:3:2:1, seed the adaptive MCL; without an image the filter starts uniform over the free space. Whenever
 the filter declares itself lost and an image comes with the update, particles are injected around the
 image's Top-4 (`filter.inject_particles` per step, the paper's 1000; with
-`filter.inject_while_relocalising`, at every step until it tracks again).
+`filter.inject_while_relocalising`, at every step until it tracks again). With a bundle exported with a
+sequence model and `filter.relocalise_with` `auto` (the default: `both` with a sequence model, `image`
+without), `both` or `sequence`, every frame also goes into a ring buffer (`pipeline.runtime.sequence`);
+when the filter is declared lost the buffer keeps only the frames since the kidnap rule started counting,
+and once it holds `length` frames their sequence's Top-4 are injected at every step until the filter
+tracks again (seed 000 section 3.3), headings spread by `filter.sequence_heading_std_deg`; `both` also
+injects the single image's Top-4 at the step the filter declares itself lost, `sequence` does not.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ class Estimate:
     n_particles: int
     updated: bool  # False when the filter held the update back (not enough travel)
     candidates: np.ndarray | None  # (K, 4) x, y, theta, weight when retrieval ran this step
+    source: str | None  # what gave the candidates: "image" or "sequence" (None when none ran)
     best_likelihood: float  # per-beam relative likelihood of the best particle, (0, 1]
 
 
@@ -67,6 +74,12 @@ class Localizer:
         self.describer = OnnxDescriber(root / "models" / "describer.onnx", root / "models" / "describer.json",
                                        threads=describer_threads)
         self.retrieval = settings["retrieval"]
+        from pipeline.runtime.sequence import SequenceRelocaliser, has_sequence
+
+        self.sequence = SequenceRelocaliser(root, threads=describer_threads) if has_sequence(root) else None
+        if fcfg.relocalise_with in ("sequence", "both") and self.sequence is None:
+            raise BundleError(f"{root}: filter.relocalise_with is '{fcfg.relocalise_with}' but the bundle has no "
+                              f"sequence model; export it with --sequence or set filter.relocalise_with=image")
 
     def reset(self, seed: int | None = None) -> None:
         """Forget the robot's pose: the next update starts afresh (a new filter, seeded `seed` if given)."""
@@ -78,6 +91,11 @@ class Localizer:
                                   base_from_laser=self.laser.base_from_laser)
         self.started = False
         self.seeded_by_retrieval = False
+        self.awaiting_sequence = False  # lost, and the sequence has not yet brought the filter back
+        self._was_lost = False
+        self._confirmed = 0
+        if getattr(self, "sequence", None) is not None:
+            self.sequence.keep_last(0)
 
     @classmethod
     def from_bundle(cls, path: Path, *, seed: int | None = None, workdir: Path | None = None,
@@ -117,6 +135,18 @@ class Localizer:
                                weights=tuple(r["candidate_weights"]), rerank=r.get("rerank", True))
         return found.candidates
 
+    @property
+    def relocalise_with(self) -> str:
+        """The re-localization in effect: filter.relocalise_with, with auto resolved for this bundle."""
+        mode = self.filter_config.relocalise_with
+        if mode == "auto":
+            return "both" if self.sequence is not None else "image"
+        return mode
+
+    def sequence_candidates(self) -> np.ndarray:
+        """(K, 4) x, y, theta, weight: the Top-K database windows of the buffered frames."""
+        return self.sequence.candidates(tuple(self.retrieval["candidate_weights"]))
+
     def scan(self, ranges) -> object:
         from pipeline.runtime.sensor import Scan
 
@@ -131,21 +161,47 @@ class Localizer:
 
         if scan is not None and not isinstance(scan, Scan):
             scan = self.scan(scan)
-        cands = None
+        cands, source = None, None
+        mode = self.relocalise_with
+        use_sequence = mode != "image"
+        if use_sequence and self.started and self.filter.state == FilterState.LOST and not self._was_lost:
+            # Just declared lost (the filter may stay lost for several updates until something is injected):
+            # the frames seen while the kidnap rule was counting were taken where the robot is now.
+            self.sequence.keep_last(self.filter_config.kidnap.updates)
+            self.awaiting_sequence = True
+        self._was_lost = self.started and self.filter.state == FilterState.LOST
+        if use_sequence and image is not None:
+            self.sequence.push(image)
         if not self.started:
             if image is not None:
                 cands = self.candidates(image)
                 self.filter.init_candidates(cands[:, :3], cands[:, 3])
-                self.seeded_by_retrieval = True
+                self.seeded_by_retrieval, source = True, "image"
             else:
                 self.filter.init_uniform()
             self.started = True
-        elif image is not None and (self.filter.state == FilterState.LOST or not self.seeded_by_retrieval
-                                    or (self.filter.state == FilterState.RELOCALISING
-                                        and self.filter_config.inject_while_relocalising)):
-            cands = self.candidates(image)
-            self.filter.inject(cands[:, :3], cands[:, 3])
-            self.seeded_by_retrieval = True
+        else:
+            state = self.filter.state
+            if self.awaiting_sequence and state == FilterState.TRACKING:
+                # Tracking again, but a wrong twin of the place can fit the laser as well as the right one:
+                # the sequence keeps proposing for `sequence_confirm_steps` more steps.
+                self._confirmed += 1
+                if self._confirmed > self.filter_config.sequence_confirm_steps:
+                    self.awaiting_sequence = False
+            elif self.awaiting_sequence:
+                self._confirmed = 0
+            if self.awaiting_sequence and self.sequence.ready:
+                cands, source = self.sequence_candidates(), "sequence"
+            elif image is not None and ((state == FilterState.LOST and mode != "sequence")
+                                        or not self.seeded_by_retrieval
+                                        or (state == FilterState.RELOCALISING and mode == "image"
+                                            and self.filter_config.inject_while_relocalising)):
+                cands, source = self.candidates(image), "image"
+            if cands is not None:
+                spread = self.filter_config.sequence_heading_std_deg if source == "sequence" else None
+                self.filter.inject(cands[:, :3], cands[:, 3],
+                                   std_theta=None if spread is None else np.radians(spread))
+                self.seeded_by_retrieval = True
         res = self.filter.update(odometry, scan)
-        return Estimate(res.pose, res.covariance, res.state.value, res.particles, res.updated, cands,
+        return Estimate(res.pose, res.covariance, res.state.value, res.particles, res.updated, cands, source,
                         res.best_likelihood)

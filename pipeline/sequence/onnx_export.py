@@ -68,3 +68,66 @@ def export_sequence_onnx(model, path: Path, *, in_dim: int, lengths=(1, 2, 6, 10
         raise SitelocError(f"the sequence LSTM's ONNX graph differs from torch by {max(worst.values()):.2e} "
                            f"(tolerance {tolerance:g}) at lengths {worst}; nothing was written")
     return {"max_abs_by_length": {str(k): v for k, v in worst.items()}, "tolerance": tolerance}
+
+
+def resampling_matrices(image_hw: tuple[int, int], size: int):
+    """(ry (h, H), rx (w, W)) with `ry @ image @ rx.T` equal to the antialiased bilinear resize of
+    `FrameEncoder.prepare`: torch's resize is separable, so each matrix is its response to unit impulses.
+    (ONNX has no antialiased resize; two constant MatMuls reproduce it exactly.)"""
+    import torch
+    import torch.nn.functional as F
+
+    H, W = image_hw
+    s = size / min(H, W)
+    h, w = max(1, round(H * s)), max(1, round(W * s))
+    with torch.no_grad():
+        rx = F.interpolate(torch.eye(W)[None, None], size=(W, w), mode="bilinear", align_corners=False,
+                           antialias=True)[0, 0].T.contiguous()
+        ry = F.interpolate(torch.eye(H)[None, None], size=(h, H), mode="bilinear", align_corners=False,
+                           antialias=True)[0, 0].contiguous()
+    return ry, rx
+
+
+def export_frame_encoder(encoder, image_hw: tuple[int, int], path: Path, images: list, *,
+                         tolerance: float = 5e-3) -> dict:
+    """The frame encoder (camera image (3, H, W) in [0, 1] -> 1000 logits) as ONNX for the runtime, checked
+    on `images` against `encoder` itself; refused (nothing written) beyond `tolerance` (absolute, logits)."""
+    import torch
+    from torch import nn
+
+    from pipeline.io.atomic import atomic_file
+
+    ry, rx = resampling_matrices(image_hw, encoder.size)
+
+    class Encode(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.model = encoder.model.cpu().eval()
+            self.register_buffer("ry", ry)
+            self.register_buffer("rx", rx)
+            self.register_buffer("mean", encoder.mean.cpu())
+            self.register_buffer("std", encoder.std.cpu())
+
+        def forward(self, image):
+            x = torch.matmul(self.ry, torch.matmul(image, self.rx.T))[None]
+            return self.model((x - self.mean) / self.std)[0]
+
+    graph = Encode().eval()
+    with atomic_file(path, "wb") as fh, warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(graph, (torch.zeros(3, *image_hw),), fh, opset_version=17, dynamo=False,
+                          input_names=["image"], output_names=["logits"])
+    import onnxruntime as ort
+
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    worst = 0.0
+    for im in images:
+        ref = encoder([im.cpu()])[0]
+        got = session.run(None, {"image": im.cpu().numpy().astype(np.float32)})[0]
+        worst = max(worst, float(np.max(np.abs(got - ref))))
+    if worst > tolerance:
+        Path(path).unlink()
+        raise SitelocError(f"the frame encoder's ONNX graph differs from torch by {worst:.2e} on {len(images)} "
+                           f"images (tolerance {tolerance:g}); nothing was written")
+    return {"image_hw": list(image_hw), "frame_size": encoder.size, "weights": encoder.source, "dim": 1000,
+            "parity": {"images": len(images), "max_abs": worst, "tolerance": tolerance}}

@@ -88,6 +88,8 @@ class RunSpec(Strict):
     mapping_runs: int = Field(2, ge=0)
     query_runs: int = Field(3, ge=0)
     steps_per_run: int = Field(200, ge=2)
+    mapping_steps: int | None = Field(None, ge=2, description="steps of each mapping run [default: steps_per_run]; "
+                                      "the sequence database covers what the mapping runs drive past")
     step_m: float = Field(0.4, gt=0.05)
     kidnaps_per_query_run: int = Field(1, ge=0)
     odometry_noise: OdometryNoise = OdometryNoise()

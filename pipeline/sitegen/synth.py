@@ -182,7 +182,8 @@ def _write_runs(tmp: Path, preset, scene, occ_map, stops, renderer, rng, seed, c
 
     r, lz = preset.runs, preset.laser
     runs = make_runs(scene, occ_map, stops, n_mapping=r.mapping_runs, n_query=r.query_runs,
-                     steps_per_run=r.steps_per_run, step=r.step_m, kidnaps_per_query_run=r.kidnaps_per_query_run,
+                     steps_per_run=r.steps_per_run, mapping_steps=r.mapping_steps, step=r.step_m,
+                     kidnaps_per_query_run=r.kidnaps_per_query_run,
                      seed=seed, noise=r.odometry_noise)
     report = {}
     person_room = reachable_mask(scene, occ_map, clearance=0.35)  # where people can walk: the same every run

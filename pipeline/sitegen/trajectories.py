@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy.ndimage import distance_transform_edt, label
+from scipy.sparse.csgraph import dijkstra
 
 from pipeline.config import OdometryNoise
 from pipeline.io.atomic import atomic_file, write_text_atomic
@@ -165,15 +166,27 @@ class _Driver:
         xy, direction = resample(np.vstack(parts), self.step)
         return np.column_stack([xy, smooth_headings(direction, wobble, self.rng)])[:n_steps]
 
-    def tour(self, first: int):
-        """Stops in greedy nearest-neighbour order from `first`, cyclically, each 0-0.3 m off the stop."""
-        xy = self.stops[:, :2]
-        left, order = np.ones(len(xy), dtype=bool), [first]
+    def path_lengths(self) -> np.ndarray:
+        """(S, S) driving distances between the stops on the planning graph (computed once)."""
+        if getattr(self, "_paths", None) is None:
+            nodes = np.array([self.planner.node(x, y) for x, y in self.stops[:, :2]])
+            rows = [dijkstra(self.planner.graph, indices=nodes[i:i + 32])[:, nodes] for i in range(0, len(nodes), 32)]
+            self._paths = np.vstack(rows)
+        return self._paths
+
+    def tour(self, first: int, reverse: bool = False):
+        """Stops in greedy nearest-neighbour order by driving distance from `first` (so a tour finishes a
+        room or a corridor before it moves on, instead of hopping through walls to the next room), cyclically,
+        each 0-0.3 m off the stop; `reverse`: the same tour driven the other way round."""
+        paths = self.path_lengths()
+        left, order = np.ones(len(paths), dtype=bool), [first]
         left[first] = False
         while left.any():
-            d = np.where(left, np.hypot(*(xy - xy[order[-1]]).T), np.inf)
+            d = np.where(left, paths[order[-1]], np.inf)
             order.append(int(np.argmin(d)))
             left[order[-1]] = False
+        if reverse:
+            order = [order[0], *order[:0:-1]]
         while True:
             for j in order:
                 yield self.near(*self.stops[j, :2], 0.0, 0.3)
@@ -217,6 +230,7 @@ def make_runs(
     kidnaps_per_query_run: int = 1,
     seed: int = 0,
     *,
+    mapping_steps: int | None = None,
     noise: OdometryNoise | None = None,
     dt: float = 0.5,
     clearance: float = 0.3,
@@ -225,7 +239,8 @@ def make_runs(
     kidnap_min_distance: float = 5.0,
     planner: RoutePlanner | None = None,
 ) -> list[SimRun]:
-    """Mapping runs (tours of the stops, each starting elsewhere on the tour) and query runs (between
+    """Mapping runs (tours of the stops, `mapping_steps` long, default `steps_per_run`; in pairs, each way
+    round from the same stop) and query runs (between
     stops, in unseen headings, kidnapped `kidnaps_per_query_run` times to a random driveable place more
     than `kidnap_min_distance` away). At a kidnap the ground truth jumps but the odometry only sees the
     robot being lifted and set down (a few cm and degrees); the step after the jump is flagged.
@@ -236,10 +251,17 @@ def make_runs(
     planner = planner or RoutePlanner(occ_map, clearance)
     drv = _Driver(planner, np.asarray(stops, dtype=np.float64).reshape(-1, 3), step, rng)
     runs = []
+    # The mapping runs draw from their own stream, so the query runs do not change with how long or how
+    # many the mapping runs are.
+    query_rng, drv.rng = rng, np.random.default_rng([seed, 1])
     for j in range(n_mapping):
-        first = int(j * len(drv.stops) / max(n_mapping, 1))
-        gt = drv.drive(tuple(drv.stops[first, :2]), drv.tour(first), steps_per_run, wobble)
-        runs.append(_finish(f"mapping_{j:02d}", "mapping", gt, np.zeros(len(gt), bool), noise, dt, rng))
+        # Runs in pairs: one tour each way round from the same stop, so the database has sequences of each
+        # corridor in both directions of travel; pairs start at different points of the floor.
+        first = int((j // 2) * len(drv.stops) / max((n_mapping + 1) // 2, 1))
+        gt = drv.drive(tuple(drv.stops[first, :2]), drv.tour(first, reverse=j % 2 == 1), mapping_steps or steps_per_run,
+                       wobble)
+        runs.append(_finish(f"mapping_{j:02d}", "mapping", gt, np.zeros(len(gt), bool), noise, dt, drv.rng))
+    rng = drv.rng = query_rng
     for j in range(n_query):
         cuts = _kidnap_steps(steps_per_run, kidnaps_per_query_run, rng)
         start = drv.near(*drv.stops[rng.integers(len(drv.stops)), :2], 0.6, 1.0)

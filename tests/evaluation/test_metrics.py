@@ -23,3 +23,11 @@ def test_metrics_skip_the_kidnapped_intervals():
     never = replay_metrics(np.full(30, 3.0), [10], np.full(30, 10), np.ones(30), np.zeros(30, bool))
     assert never["converged_step"] is None and never["recovery_steps"] == [None] and never["error_median_m"] is None
     assert never["update_ms_mean"] is None
+
+
+def test_final_error_of_each_kidnapping_is_the_median_before_the_next():
+    from pipeline.evaluation.metrics import replay_metrics
+
+    err = np.r_[np.zeros(10), np.full(10, 5.0), np.full(5, 1.0), np.full(5, 0.2), np.full(10, 3.0)]
+    m = replay_metrics(err, [10, 30], np.ones(40), np.zeros(40), np.ones(40, bool), threshold_m=0.5, hold=5)
+    assert m["recovery_final_error_m"] == [0.2, 3.0]  # the last 5 steps before step 30, then before the end

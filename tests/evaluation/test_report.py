@@ -61,10 +61,11 @@ def test_cached_retrieval_describes_each_image_once():
 
 
 @pytest.fixture(scope="module")
-def report(micro_bundle, tmp_path_factory):
+def report(micro_sequence_bundle, tmp_path_factory):
+    """The report of the micro bundle exported with a sequence LSTM: every method, `sequence` included."""
     from pipeline.evaluation.report import run_evaluate
 
-    cfg, ing, _, _, bundle = micro_bundle
+    cfg, ing, _, bundle = micro_sequence_bundle
     cfg = cfg.model_copy(update={"evaluate": cfg.evaluate.model_copy(update={"trials": 2})})
     out = run_evaluate(cfg, inputs={"bundle": bundle, "data": ing}, outputs={"out": tmp_path_factory.mktemp("r") / "o"},
                        progress=False)
@@ -78,6 +79,7 @@ def test_report_holds_every_experiment_and_figure(report):
     doc = json.loads((out / "metrics.json").read_text())
     runs = sorted(p.stem for p in (ing / "runs").glob("query_*.parquet"))
     assert doc["runs"] == runs and runs
+    assert set(doc["summary"]) == set(METHODS)
     for m in METHODS:
         expected = len(runs) * (1 if m == "image_only" else 2)
         assert doc["summary"][m]["replays"] == expected == len(doc["replays"][m])
@@ -97,7 +99,7 @@ def test_summary_figures_recompute_from_the_estimates_tables(report):
 
     _, _, _, out = report
     doc = json.loads((out / "metrics.json").read_text())
-    for m in ("proposed", "amcl", "mcl"):
+    for m in ("proposed", "sequence", "amcl", "mcl"):
         t = tables.read_table(out / "estimates" / f"{m}.parquet", "estimates").to_pydict()
         err = np.hypot(np.subtract(t["x"], t["gt_x"]), np.subtract(t["y"], t["gt_y"]))
         np.testing.assert_allclose(t["error_xy"], err)
@@ -112,6 +114,31 @@ def test_summary_figures_recompute_from_the_estimates_tables(report):
     mcl = tables.read_table(out / "estimates" / "mcl.parquet", "estimates").column("particles").to_numpy()
     cfg = report[0]
     assert (mcl == cfg.filter.max_particles).all()  # fixed-count MCL never adapts
+
+
+def test_kidnap_table_counts_every_kidnapping_of_every_replay(report):
+    _, _, _, out = report
+    doc = json.loads((out / "metrics.json").read_text())
+    for m, v in doc["kidnappings"].items():
+        steps = [s for r in doc["replays"][m] for s in r["recovery_steps"]]
+        finals = [f for r in doc["replays"][m] for f in r["recovery_final_error_m"]]
+        assert v["kidnappings"] == len(steps) == len(finals) == doc["summary"][m]["kidnaps"]
+        ok = [s for s in steps if s is not None]
+        assert v["recovered"] == len(ok) and v["within_15"] == sum(s <= 15 for s in ok)
+        both = sum(s is not None and s <= 15 and f < 0.10 for s, f in zip(steps, finals, strict=True))
+        assert v["within_15_and_10cm"] == both
+    assert "## Kidnappings" in (out / "report.md").read_text()
+
+
+def test_a_bundle_without_a_sequence_model_is_evaluated_without_the_sequence_method(micro_bundle, tmp_path):
+    from pipeline.evaluation.report import run_evaluate
+
+    cfg, ing, _, _, bundle = micro_bundle
+    cfg = cfg.model_copy(update={"evaluate": cfg.evaluate.model_copy(update={"trials": 1})})
+    out = run_evaluate(cfg, inputs={"bundle": bundle, "data": ing}, outputs={"out": tmp_path / "o"}, progress=False)
+    doc = json.loads((out / "metrics.json").read_text())
+    assert not {"sequence", "image_reloc"} & set(doc["summary"]) and "proposed" in doc["summary"]
+    assert not (out / "estimates" / "sequence.parquet").exists()
 
 
 def test_image_only_and_table1_match_a_fresh_localizer(report):

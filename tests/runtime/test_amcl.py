@@ -57,10 +57,16 @@ def test_global_localization_converges_from_uniform(world):
     occ, runs, scans, scanner = world
     f = make(occ)
     f.init_uniform()
-    errors, states, counts = replay(f, runs["mapping_00"], scans["mapping_00"], scanner)
+    run = runs["mapping_00"]
+    errors, states, counts = replay(f, run, scans["mapping_00"], scanner)
     assert np.all(errors[-40:] < 0.25), errors[-40:]
     assert states[-1] == FilterState.TRACKING
-    assert counts[-1] < 1000 < counts.max()  # KLD keeps many particles while unsure, few once the belief is tight
+    assert counts[-1] < 1000  # KLD keeps few particles once the belief is tight ...
+    unsure = make(occ)
+    unsure.init_uniform()
+    for i in range(3):  # ... and many while the scans say nothing (every beam at max range)
+        blank = scan_of(scanner, np.full(len(scans["mapping_00"][i]), RANGE_MAX))
+        assert unsure.update(run.odom[i], blank).particles > 1000
 
 
 def test_kidnapping_is_detected_and_recovered(world):

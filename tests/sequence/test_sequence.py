@@ -11,9 +11,7 @@ import pytest
 from pipeline.errors import SitelocError
 from pipeline.sequence.model import place_labels, windows
 from pipeline.sequence.train import recall_within
-
-FAST = ["sequence.frame_size=32", "sequence.length=3", "sequence.hidden=16", "sequence.epochs=4",
-        "sequence.dims=8", "sequence.place_cell_m=4.0"]
+from tests.conftest import SEQUENCE_SETS as FAST
 
 
 def test_windows_stay_inside_a_segment_and_skip_gaps():
@@ -51,15 +49,8 @@ def test_recalls_over_the_reachable_queries():
 
 
 @pytest.fixture(scope="module")
-def frames(micro_site, tmp_path_factory):
-    from pipeline.config import load_config
-    from pipeline.sequence.frames import run_frame_features
-    from tests.conftest import MICRO_SETS
-
-    _, ing, _ = micro_site
-    cfg = load_config("ci", [*MICRO_SETS, *FAST])
-    return cfg, ing, run_frame_features(cfg, inputs={"data": ing}, outputs={"out": tmp_path_factory.mktemp("f") / "f"},
-                                        progress=False)
+def frames(micro_frames):
+    return micro_frames
 
 
 def test_frame_features_are_the_classifiers_logits_of_every_run_frame(frames):

@@ -181,3 +181,38 @@ def test_written_run_reads_back_in_the_capture_format(tmp_path, floor, runs):
     assert back.kidnapped == list(run.kidnapped) and back.image == names
     with pytest.raises(ValueError):
         write_capture_run(tmp_path / "bad", run, ranges[:-1], names)
+
+
+def test_mapping_tours_go_by_driving_distance_and_pair_up_both_ways(floor, stops):
+    from pipeline.sitegen.routes import RoutePlanner
+    from pipeline.sitegen.trajectories import _Driver
+
+    drv = _Driver(RoutePlanner(floor[1], 0.3), np.asarray(stops, dtype=float), STEP, np.random.default_rng(0))
+    paths = drv.path_lengths()
+    xy = drv.stops[:, :2]
+    straight = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+    np.testing.assert_allclose(paths, paths.T, atol=1e-9)
+    assert np.all(np.diag(paths) == 0) and np.all(paths >= straight - 0.3)  # planning cells are 0.1 m
+
+    def order(tour):
+        pts = [next(tour) for _ in range(len(xy))]
+        return [int(np.argmin(np.hypot(*(xy - p).T))) for p in pts]
+
+    fwd, back = order(drv.tour(0)), order(drv.tour(0, reverse=True))
+    assert sorted(fwd) == list(range(len(xy)))
+    for k in range(1, len(fwd)):  # greedy: each next stop is the nearest one left by driving distance
+        left = [j for j in range(len(xy)) if j not in fwd[:k]]
+        assert paths[fwd[k - 1], fwd[k]] == pytest.approx(min(paths[fwd[k - 1], j] for j in left))
+    assert back == [fwd[0], *fwd[:0:-1]]
+
+    runs = make_runs(*floor, stops, n_mapping=2, n_query=0, steps_per_run=20, mapping_steps=35, step=STEP, seed=1)
+    assert [len(r.gt) for r in runs] == [35, 35]
+    np.testing.assert_allclose(runs[0].gt[0, :2], runs[1].gt[0, :2])  # a pair starts at the same stop
+    assert not np.allclose(runs[0].gt[5:, :2], runs[1].gt[5:, :2])  # and drives the other way round
+
+
+def test_query_runs_do_not_depend_on_the_mapping_runs(floor, stops):
+    a = make_runs(*floor, stops, n_mapping=1, n_query=1, steps_per_run=30, step=STEP, seed=3)
+    b = make_runs(*floor, stops, n_mapping=2, n_query=1, steps_per_run=30, mapping_steps=50, step=STEP, seed=3)
+    np.testing.assert_array_equal(a[-1].gt, b[-1].gt)
+    np.testing.assert_array_equal(a[-1].odom, b[-1].odom)

@@ -1,0 +1,101 @@
+"""Image-sequence re-localization at run time (seed 000 section 3.3): the last frames, not the last frame.
+
+A bundle exported with a sequence model (`siteloc export --sequence`) carries:
+
+    models/frames.onnx       camera image (3, H, W) in [0, 1] -> 1000 ImageNet logits (EfficientNet-Lite0)
+    models/sequence.onnx     frame logits (B, T, 1000) -> pooled LSTM descriptor (B, hidden), dynamic T
+    models/sequence.json     length, parity figures, encoder settings
+    sequence/database.parquet, sequence/whitening.npz   the mapping runs' whitened sequence descriptors + poses
+
+`SequenceRelocaliser` keeps a ring buffer of the most recent frames' logits. The Localizer clears it when
+the filter declares itself lost, keeping only the frames since the kidnap rule started counting (those
+were seen where the robot is now), and once `length` frames are in it, the sequence's Top-K database
+windows give candidate poses (the pose of each window's last frame) to inject around. numpy and
+onnxruntime only.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.runtime.bundle import BundleError
+from pipeline.runtime.describer import image_array
+
+FILES = ("models/frames.onnx", "models/sequence.onnx", "models/sequence.json", "sequence/database.parquet",
+         "sequence/whitening.npz")
+
+
+def has_sequence(root: Path) -> bool:
+    """Whether the bundle carries the sequence models (all of them, or it is refused as incomplete)."""
+    present = [(Path(root) / f).is_file() for f in FILES]
+    if any(present) and not all(present):
+        missing = [f for f, p in zip(FILES, present, strict=True) if not p]
+        raise BundleError(f"{root}: the sequence re-localization is incomplete ({', '.join(missing)} missing); "
+                          f"export the bundle again")
+    return all(present)
+
+
+class SequenceRelocaliser:
+    def __init__(self, root: Path, *, threads: int | None = None):
+        import onnxruntime as ort
+
+        from pipeline.io import tables
+        from pipeline.retrieval.whitening import PCAWhitening
+
+        root = Path(root)
+        self.meta = json.loads((root / "models" / "sequence.json").read_text())
+        options = ort.SessionOptions()
+        if threads:
+            options.intra_op_num_threads = threads
+        self.frames = ort.InferenceSession(str(root / "models" / "frames.onnx"), options,
+                                           providers=["CPUExecutionProvider"])
+        self.lstm = ort.InferenceSession(str(root / "models" / "sequence.onnx"), options,
+                                         providers=["CPUExecutionProvider"])
+        self.whitening = PCAWhitening.load(root / "sequence" / "whitening.npz")
+        t = tables.read_table(root / "sequence" / "database.parquet", "sequences")
+        self.db = tables.descriptor_matrix(t).astype(np.float32)
+        self.db_poses = np.column_stack([t.column(c).to_numpy() for c in ("x", "y", "theta")])
+        self.length = int(self.meta["length"])
+        self.min_frames = self.length  # query once this many frames are buffered (the LSTM takes any length)
+        self.image_hw = tuple(self.meta["frames"]["image_hw"])
+        self.buffer: deque[np.ndarray] = deque(maxlen=self.length)
+
+    def encode(self, image) -> np.ndarray:
+        """The frame's 1000 logits (the LSTM's input)."""
+        x = image_array(image)
+        if tuple(x.shape[1:]) != self.image_hw:
+            raise BundleError(f"camera image of {x.shape[2]} x {x.shape[1]} px; this bundle's frame encoder was "
+                              f"exported for {self.image_hw[1]} x {self.image_hw[0]}")
+        return self.frames.run(None, {"image": x})[0]
+
+    def push(self, image) -> None:
+        self.buffer.append(self.encode(image))
+
+    def keep_last(self, n: int) -> None:
+        """Drop all but the `n` most recent frames (n = 0 empties the buffer)."""
+        while len(self.buffer) > max(n, 0):
+            self.buffer.popleft()
+
+    @property
+    def ready(self) -> bool:
+        return len(self.buffer) >= self.min_frames
+
+    def describe(self, frames: np.ndarray) -> np.ndarray:
+        """(T, 1000) frame logits -> whitened sequence descriptor (dims,)."""
+        pooled = self.lstm.run(None, {"frames": np.asarray(frames, np.float32)[None]})[0]
+        return self.whitening.transform(pooled)[0]
+
+    def candidates(self, weights=(4.0, 3.0, 2.0, 1.0)) -> np.ndarray:
+        """(K, 4) x, y, theta, weight of the buffer's Top-K database windows (K = len(weights)), by inner
+        product of whitened descriptors, one candidate per database window; weights normalised."""
+        if not self.buffer:
+            raise BundleError("no frames in the sequence buffer yet")
+        q = self.describe(np.stack(self.buffer))
+        k = min(len(weights), len(self.db))
+        top = np.argsort(-(self.db @ q), kind="stable")[:k]
+        w = np.asarray(weights[:k], dtype=np.float64)
+        return np.column_stack([self.db_poses[top], w / w.sum()])

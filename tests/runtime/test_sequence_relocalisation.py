@@ -1,0 +1,169 @@
+"""Image-sequence re-localization at run time: the bundle's sequence files, the ring buffer, the closed loop."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from pipeline.runtime.bundle import BundleError
+
+
+def test_the_bundle_carries_the_checked_sequence_models(micro_sequence_bundle):
+    from pipeline.runtime.bundle import verify_bundle
+    from pipeline.runtime.sequence import FILES
+
+    cfg, _, seq, bundle = micro_sequence_bundle
+    assert set(FILES) <= set(verify_bundle(bundle)["files"])
+    meta = json.loads((bundle / "models" / "sequence.json").read_text())
+    assert meta["length"] == cfg.sequence.length
+    assert meta["frames"]["parity"]["max_abs"] <= meta["frames"]["parity"]["tolerance"]
+    assert max(meta["lstm_parity"]["max_abs_by_length"].values()) <= meta["lstm_parity"]["tolerance"]
+    assert (bundle / "sequence" / "database.parquet").read_bytes() == (seq / "database.parquet").read_bytes()
+
+
+def test_sequence_candidates_match_the_torch_model_searched_by_hand(micro_sequence_bundle):
+    """Frames through the ONNX graphs give the Top-4 that torch's encoder + LSTM + whitening + a full sort give."""
+    import torch
+
+    from pipeline.detection.inference import load_image
+    from pipeline.evaluation.replay import load_run
+    from pipeline.io import tables
+    from pipeline.retrieval.whitening import PCAWhitening
+    from pipeline.runtime.sequence import SequenceRelocaliser
+    from pipeline.sequence.frames import FrameEncoder
+    from pipeline.sequence.onnx_export import load_sequence_model
+
+    cfg, ing, seq, bundle = micro_sequence_bundle
+    run = load_run(sorted((ing / "runs").glob("query_*.parquet"))[0])
+    images = [ing / i for i in run.image_ids[: cfg.sequence.length + 2]]
+    reloc = SequenceRelocaliser(bundle)
+    for im in images:
+        reloc.push(im)
+    assert len(reloc.buffer) == cfg.sequence.length and reloc.ready  # a ring: the oldest frames fell out
+    got = reloc.candidates((4.0, 3.0, 2.0, 1.0))
+
+    enc = FrameEncoder(cfg.sequence.frame_weights, cfg.sequence.frame_size)
+    logits = enc([load_image(p) for p in images[-cfg.sequence.length:]])
+    model, _ = load_sequence_model(seq)
+    with torch.no_grad():
+        pooled = model.describe(torch.from_numpy(logits)[None]).numpy()
+    q = PCAWhitening.load(seq / "whitening.npz").transform(pooled)[0]
+    db = tables.read_table(seq / "database.parquet", "sequences")
+    top = np.argsort(-(tables.descriptor_matrix(db) @ q), kind="stable")[:4]
+    want = np.column_stack([db.column(c).to_numpy()[top] for c in ("x", "y", "theta")])
+    np.testing.assert_allclose(got[:, :3], want, atol=1e-6)
+    np.testing.assert_allclose(got[:, 3], [0.4, 0.3, 0.2, 0.1])
+    reloc.keep_last(1)
+    assert len(reloc.buffer) == 1 and not reloc.ready
+    reloc.keep_last(0)
+    with pytest.raises(BundleError, match="no frames"):
+        reloc.candidates()
+
+
+class StubFilter:
+    """A filter whose state the test scripts; records what the Localizer injects."""
+
+    def __init__(self, states):
+        from pipeline.runtime.amcl import FilterState
+
+        self.script = [FilterState(s) for s in states]
+        self.state = FilterState.RELOCALISING
+        self.injected: list[tuple[int, np.ndarray]] = []
+        self.step = 0
+        self.particles = np.zeros((10, 3))
+
+    def init_candidates(self, poses, weights):
+        pass
+
+    def init_uniform(self):
+        pass
+
+    def inject(self, poses, weights, std_theta=None):
+        self.injected.append((self.step, np.asarray(weights), std_theta))
+
+    def update(self, odometry, scan):
+        self.state = self.script[self.step]
+        self.step += 1
+        return SimpleNamespace(pose=np.zeros(3), covariance=np.eye(3), state=self.state, particles=10, updated=True,
+                               best_likelihood=1.0)
+
+
+def test_closed_loop_injects_the_sequence_every_step_from_lost_until_tracking(micro_sequence_bundle):
+    from pipeline.runtime.localizer import Localizer
+
+    _, ing, _, bundle = micro_sequence_bundle
+    loc = Localizer.from_bundle(bundle)
+    length = loc.sequence.length  # 3
+    fc = loc.filter_config
+    loc.filter_config = fc.model_copy(update={"relocalise_with": "sequence", "sequence_confirm_steps": 0,
+                                              "kidnap": fc.kidnap.model_copy(update={"updates": 1})})
+    loc.reset()
+    n = {"v": 0}
+
+    def encode(image):  # a distinct vector per frame; the real encoder is checked above
+        n["v"] += 1
+        return np.full(1000, float(n["v"]), np.float32)
+
+    loc.sequence.encode = encode
+    loc.candidates = lambda image: np.array([[1.0, 2.0, 0.0, 0.4], [3.0, 4.0, 0.0, 0.3], [5.0, 6.0, 0.0, 0.2],
+                                             [7.0, 8.0, 0.0, 0.1]])
+    # Lost for two updates (nothing injected yet): the buffer is trimmed once, at the first.
+    states = ["tracking"] * 4 + ["lost", "lost"] + ["relocalising"] * 4 + ["tracking"] * 3
+    loc.filter = StubFilter(states)
+    loc.started = True
+    loc.seeded_by_retrieval = True
+    sources = [loc.update(np.zeros(3), None, image="frame").source for _ in states]
+    lost_at = states.index("lost")  # the result of update 4; update 5 sees it
+    # Update 5 keeps the 1 frame the kidnap rule counted plus its own; ready once `length` frames: update 6.
+    first = lost_at + 1 + (length - 2)
+    assert sources[:first] == [None] * first
+    back = len(states) - 3  # the first update whose previous result was tracking again
+    assert sources[first:back + 1] == ["sequence"] * (back + 1 - first)
+    assert sources[back + 1:] == [None] * (len(states) - back - 1)
+    assert [s for s, _, _ in loc.filter.injected] == list(range(first, back + 1))
+    for _, w, spread in loc.filter.injected:
+        np.testing.assert_allclose(w.sum(), 1.0)  # injection weights stay normalised
+        assert spread == pytest.approx(np.radians(fc.sequence_heading_std_deg))
+
+    loc.filter_config = loc.filter_config.model_copy(update={"relocalise_with": "both"})
+    loc.reset()
+    loc.sequence.encode = encode
+    loc.filter, loc.started, loc.seeded_by_retrieval = StubFilter(states), True, True
+    sources = [loc.update(np.zeros(3), None, image="frame").source for _ in states]
+    assert sources[lost_at + 1] == "image" and sources[first] == "sequence"
+
+    # With confirmation steps the sequence keeps proposing for that many updates after tracking resumes.
+    loc.filter_config = loc.filter_config.model_copy(update={"relocalise_with": "sequence",
+                                                             "sequence_confirm_steps": 2})
+    loc.reset()
+    loc.sequence.encode = encode
+    loc.filter, loc.started, loc.seeded_by_retrieval = StubFilter(states + ["tracking"] * 3), True, True
+    sources = [loc.update(np.zeros(3), None, image="frame").source for _ in states + ["tracking"] * 3]
+    assert sources[first:back + 3] == ["sequence"] * (back + 3 - first) and sources[back + 3:] == [None] * 3
+
+
+def test_a_bundle_without_or_with_half_the_sequence_files_is_refused_for_it(micro_bundle, micro_sequence_bundle,
+                                                                            tmp_path):
+    import yaml
+
+    from pipeline.runtime.bundle import read_manifest
+    from pipeline.runtime.localizer import Localizer
+    from pipeline.runtime.sequence import has_sequence
+
+    bundle = micro_bundle[4]
+    settings = yaml.safe_load((bundle / "filter.yaml").read_text())
+    settings["filter"]["relocalise_with"] = "sequence"
+    with pytest.raises(BundleError, match="no sequence model.*--sequence"):
+        Localizer(bundle, read_manifest(bundle), settings)
+    plain = Localizer.from_bundle(bundle)
+    assert plain.sequence is None and plain.relocalise_with == "image"  # auto, without a sequence model
+    assert Localizer.from_bundle(micro_sequence_bundle[3]).relocalise_with == "both"
+    half = tmp_path / "half"
+    shutil.copytree(micro_sequence_bundle[3], half)
+    (half / "models" / "sequence.onnx").unlink()
+    with pytest.raises(BundleError, match="incomplete.*sequence.onnx"):
+        has_sequence(half)
