@@ -278,12 +278,18 @@ def make_runs(
 
 
 def _kidnap_steps(n: int, k: int, rng: np.random.Generator) -> list[int]:
-    """k steps spread over the run (one per equal bin of [n/5, n - 3)), at least 3 steps apart."""
+    """k steps spread over the run (one per equal bin of [n/5, n - 3)), at least half a bin (and 3 steps)
+    apart, so that each kidnapping leaves room to measure its recovery before the next."""
     if k <= 0 or n < 10:
         return []
     edges = np.linspace(n // 5, n - 3, k + 1).astype(int)
-    steps = sorted({int(rng.integers(lo, max(lo + 1, hi - 2))) for lo, hi in zip(edges[:-1], edges[1:], strict=True)})
-    return [s for s in steps if s > 0]
+    gap = max(3, int(edges[1] - edges[0]) // 2)
+    steps, prev = [], -gap
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        lo = min(max(lo, prev + gap), hi - 3)
+        prev = int(rng.integers(lo, max(lo + 1, hi - 2)))
+        steps.append(prev)
+    return sorted({s for s in steps if s > 0})
 
 
 def _landing(planner: RoutePlanner, main: int, here: np.ndarray, min_dist: float, rng) -> tuple[float, float]:

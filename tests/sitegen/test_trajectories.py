@@ -216,3 +216,14 @@ def test_query_runs_do_not_depend_on_the_mapping_runs(floor, stops):
     b = make_runs(*floor, stops, n_mapping=2, n_query=1, steps_per_run=30, mapping_steps=50, step=STEP, seed=3)
     np.testing.assert_array_equal(a[-1].gt, b[-1].gt)
     np.testing.assert_array_equal(a[-1].odom, b[-1].odom)
+
+
+def test_kidnappings_are_spread_at_least_half_a_bin_apart():
+    from pipeline.sitegen.trajectories import _kidnap_steps
+
+    for seed in range(200):
+        steps = _kidnap_steps(200, 4, np.random.default_rng(seed))
+        assert len(steps) == 4 and steps == sorted(steps)
+        assert 40 <= steps[0] and steps[-1] < 197
+        assert min(np.diff(steps)) >= (79 - 40) // 2  # half of a (197 - 40) / 4 bin
+    assert _kidnap_steps(8, 2, np.random.default_rng(0)) == [] and _kidnap_steps(100, 0, np.random.default_rng(0)) == []
