@@ -184,12 +184,16 @@ def test_written_run_reads_back_in_the_capture_format(tmp_path, floor, runs):
 
 
 def test_mapping_tours_go_by_driving_distance_and_pair_up_both_ways(floor, stops):
+    from scipy.sparse.csgraph import dijkstra
+
     from pipeline.sitegen.routes import RoutePlanner
     from pipeline.sitegen.trajectories import _Driver
 
-    drv = _Driver(RoutePlanner(floor[1], 0.3), np.asarray(stops, dtype=float), STEP, np.random.default_rng(0))
-    paths = drv.path_lengths()
+    planner = RoutePlanner(floor[1], 0.3)
+    drv = _Driver(planner, np.asarray(stops, dtype=float), STEP, np.random.default_rng(0))
     xy = drv.stops[:, :2]
+    nodes = np.array([planner.node(x, y) for x, y in xy])
+    paths = dijkstra(planner.graph, indices=nodes)[:, nodes]  # every driving distance, unbounded
     straight = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
     np.testing.assert_allclose(paths, paths.T, atol=1e-9)
     assert np.all(np.diag(paths) == 0) and np.all(paths >= straight - 0.3)  # planning cells are 0.1 m
