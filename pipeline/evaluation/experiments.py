@@ -17,7 +17,7 @@ method of the paper's figures the same inputs, seeds and filter settings (the bu
 - `image_only`: no filter: each frame's Top-1 retrieved pose is the estimate (Figure 10).
 
 Retrieval of a frame is deterministic (one ONNX pass, exact search), so each frame is described once
-and its candidates are shared by `proposed`, `sequence` (every trial) and `image_only`; likewise each
+and its candidates are shared by `proposed`, `image_reloc`, `sequence` (every trial) and `image_only`; likewise each
 frame's logits for the sequence LSTM are computed once.
 """
 
