@@ -108,8 +108,8 @@ def export_sequence(cfg: SitelocConfig, seq_dir: Path, tmp: Path, images: list) 
              "point --sequence at `siteloc train-sequence`'s output")
     model, seq_cfg = load_sequence_model(seq_dir)
     frames_path = Path(seq_cfg["frames"])
-    used = {}
-    if frames_path.is_file():
+    used = seq_cfg.get("frame_encoder") or {}
+    if not used and frames_path.is_file():  # a model trained before config.json recorded its encoder
         used = tables.table_metadata(tables.read_table(frames_path, "frames"))
     s = cfg.sequence
     enc = FrameEncoder(s.frame_weights, s.frame_size)
@@ -117,7 +117,7 @@ def export_sequence(cfg: SitelocConfig, seq_dir: Path, tmp: Path, images: list) 
     if used and (used.get("frame_size") != str(s.frame_size)
                  or Path(used.get("weights", "")).name != Path(enc.source).name):
         raise InputError(f"{seq_dir}: its frames were encoded otherwise than this export would encode camera images",
-                         [Problem(str(frames_path), f"frames: weights {used.get('weights')}, size "
+                         [Problem(str(seq_dir / "config.json"), f"frames: weights {used.get('weights')}, size "
                                   f"{used.get('frame_size')}; export: weights {enc.source}, size {s.frame_size}",
                                   fix="export with the sequence settings (--config) the frames were made with")])
     frames_meta = export_frame_encoder(enc, tuple(int(v) for v in images[0].shape[-2:]), tmp / "models" / "frames.onnx",

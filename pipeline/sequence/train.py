@@ -172,7 +172,9 @@ def run_train_sequence(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
         write_text_atomic(tmp / "config.json", json.dumps({
             "builder": {"in_dim": int(frames.features.shape[1]), "hidden": s.hidden, "num_places": len(places)},
             "length": s.length, "places": [list(p) for p in places], "place_cell_m": s.place_cell_m,
-            "heading_bins": s.heading_bins, "frames": str(frames_path)}, indent=2) + "\n")
+            "heading_bins": s.heading_bins, "frames": str(frames_path),
+            # how the frames were encoded: the runtime's camera images must be encoded the same way
+            "frame_encoder": tables.table_metadata(tables.read_table(frames_path, "frames"))}, indent=2) + "\n")
         whitening.save(tmp / "whitening.npz")
         tables.write_table(tmp / "database.parquet", tables.to_table("sequences", {
             "run": frames.run[last].tolist(), "end_step": frames.step[last].tolist(),

@@ -167,3 +167,20 @@ def test_a_bundle_without_or_with_half_the_sequence_files_is_refused_for_it(micr
     (half / "models" / "sequence.onnx").unlink()
     with pytest.raises(BundleError, match="incomplete.*sequence.onnx"):
         has_sequence(half)
+
+
+def test_export_refuses_a_sequence_model_whose_frames_were_encoded_otherwise(micro_bundle, micro_sequence_bundle,
+                                                                            tmp_path):
+    from pipeline.bundle.export import run_export
+    from pipeline.errors import InputError
+
+    _, ing, model, index, _ = micro_bundle
+    cfg, _, seq, _ = micro_sequence_bundle
+    assert json.loads((seq / "config.json").read_text())["frame_encoder"]["frame_size"] == str(cfg.sequence.frame_size)
+    other = cfg.model_copy(update={"sequence": cfg.sequence.model_copy(update={"frame_size": 48})})
+    with pytest.raises(InputError, match="encoded otherwise") as err:
+        run_export(other, inputs={"model": model, "index": index, "data": ing, "sequence": seq},
+                   outputs={"out": tmp_path / "b"})
+    assert "size 48" in err.value.render()
+    leftovers = list((tmp_path / "b").glob("*")) if (tmp_path / "b").exists() else []
+    assert leftovers == []  # nothing published
