@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/sequence_runtime.py --bundle bundles/office-0.1.0 --data data/reference/ingested
 
 Times (onnxruntime on this machine's CPU, as the robot runs it): the frame encoder (camera image ->
-1000 logits, paid on every frame once a bundle has a sequence model), the sequence query (LSTM over
+1000 logits, paid for each frame a sequence query reads, i.e. while re-localizing), the sequence query (LSTM over
 the buffered frames + whitening + exact search of the sequence database) at lengths 1-10, and beside
 them the single-image retrieval every re-localization already pays (ONNX detector + IPA Top-50 + RPA
 re-ranking). Median of `--repeat` runs over frames of the first query run.
@@ -55,7 +55,7 @@ def main() -> None:
     print("| what | ms |\n|---|---|")
     print(f"| single-image retrieval (detector + Top-50 + RPA) | "
           f"{median_ms(lambda: loc.candidates(frames[0]), args.repeat):.1f} |")
-    print(f"| frame encoder (every frame) | {median_ms(lambda: seq.encode(frames[0]), args.repeat):.1f} |")
+    print(f"| frame encoder (a frame) | {median_ms(lambda: seq.encode(frames[0]), args.repeat):.1f} |")
     logits = np.stack([seq.encode(f) for f in frames])
     for n in range(1, 11):  # the LSTM takes any length; the ring buffer holds `length` (6)
 

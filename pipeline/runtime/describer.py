@@ -28,6 +28,16 @@ def image_array(image) -> np.ndarray:
     raise ValueError(f"an image must be (H, W, 3) uint8 RGB or (3, H, W) float in [0, 1], got {a.shape} {a.dtype}")
 
 
+def camera_image(image, image_hw: tuple[int, int], graph: str) -> np.ndarray:
+    """`image_array(image)`, refused unless it has the size the bundle's `graph` was exported for."""
+    x = image_array(image)
+    if tuple(x.shape[1:]) != tuple(image_hw):
+        raise BundleError(f"camera image of {x.shape[2]} x {x.shape[1]} px; this bundle's {graph} was exported "
+                          f"for {image_hw[1]} x {image_hw[0]} (the site camera): resize the image or export a "
+                          f"bundle for this camera")
+    return x
+
+
 class OnnxDescriber:
     def __init__(self, onnx_path: Path, meta_path: Path, *, threads: int | None = None):
         import onnxruntime as ort
@@ -40,11 +50,7 @@ class OnnxDescriber:
         self.image_hw = tuple(self.meta["image_hw"])
 
     def describe(self, image) -> ImageDescriptors:
-        x = image_array(image)
-        if tuple(x.shape[1:]) != self.image_hw:
-            raise BundleError(f"camera image of {x.shape[2]} x {x.shape[1]} px; this bundle's detector was exported "
-                              f"for {self.image_hw[1]} x {self.image_hw[0]} (the site camera): resize the image "
-                              f"or export a bundle for this camera")
+        x = camera_image(image, self.image_hw, "detector")
         out = self.session.run(list(OUTPUTS), {"image": x})
         return describe_outputs(out[0], tuple(self.meta["scale"]), self.meta["stride"], *out[1:],
                                 rpa_proposals=self.meta["rpa_proposals"], rpa_min_score=self.meta["rpa_min_score"])

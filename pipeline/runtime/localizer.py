@@ -164,12 +164,13 @@ class Localizer:
         cands, source = None, None
         mode = self.relocalise_with
         use_sequence = mode != "image"
-        if use_sequence and self.started and self.filter.state == FilterState.LOST and not self._was_lost:
+        state = self.filter.state  # as the last update left it
+        if use_sequence and self.started and state == FilterState.LOST and not self._was_lost:
             # Just declared lost (the filter may stay lost for several updates until something is injected):
             # the frames seen while the kidnap rule was counting were taken where the robot is now.
             self.sequence.keep_last(self.filter_config.kidnap.updates)
             self.awaiting_sequence = True
-        self._was_lost = self.started and self.filter.state == FilterState.LOST
+        self._was_lost = self.started and state == FilterState.LOST
         if use_sequence and image is not None:
             self.sequence.push(image)
         if not self.started:
@@ -181,7 +182,6 @@ class Localizer:
                 self.filter.init_uniform()
             self.started = True
         else:
-            state = self.filter.state
             if self.awaiting_sequence and state == FilterState.TRACKING:
                 # Tracking again, but a wrong twin of the place can fit the laser as well as the right one:
                 # the sequence keeps proposing for `sequence_confirm_steps` more steps.

@@ -7,7 +7,9 @@ A bundle exported with a sequence model (`siteloc export --sequence`) carries:
     models/sequence.json     length, parity figures, encoder settings
     sequence/database.parquet, sequence/whitening.npz   the mapping runs' whitened sequence descriptors + poses
 
-`SequenceRelocaliser` keeps a ring buffer of the most recent frames' logits. The Localizer clears it when
+`SequenceRelocaliser` keeps a ring buffer of the most recent frames, encoded only when a sequence query
+needs them: the encoder costs about 16 ms a frame on 2 cores, and sequences are queried only while the
+filter re-localizes, so a tracking robot pays nothing for it. The Localizer clears the buffer when
 the filter declares itself lost, keeping only the frames since the kidnap rule started counting (those
 were seen where the robot is now), and once `length` frames are in it, the sequence's Top-K database
 windows give candidate poses (the pose of each window's last frame) to inject around. numpy and
@@ -23,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.runtime.bundle import BundleError
-from pipeline.runtime.describer import image_array
+from pipeline.runtime.describer import camera_image
 
 FILES = ("models/frames.onnx", "models/sequence.onnx", "models/sequence.json", "sequence/database.parquet",
          "sequence/whitening.npz")
@@ -60,20 +62,23 @@ class SequenceRelocaliser:
         self.db = tables.descriptor_matrix(t).astype(np.float32)
         self.db_poses = np.column_stack([t.column(c).to_numpy() for c in ("x", "y", "theta")])
         self.length = int(self.meta["length"])
-        self.min_frames = self.length  # query once this many frames are buffered (the LSTM takes any length)
         self.image_hw = tuple(self.meta["frames"]["image_hw"])
-        self.buffer: deque[np.ndarray] = deque(maxlen=self.length)
+        self.buffer: deque[list] = deque(maxlen=self.length)  # [image, its logits once encoded]
 
     def encode(self, image) -> np.ndarray:
         """The frame's 1000 logits (the LSTM's input)."""
-        x = image_array(image)
-        if tuple(x.shape[1:]) != self.image_hw:
-            raise BundleError(f"camera image of {x.shape[2]} x {x.shape[1]} px; this bundle's frame encoder was "
-                              f"exported for {self.image_hw[1]} x {self.image_hw[0]}")
-        return self.frames.run(None, {"image": x})[0]
+        return self.frames.run(None, {"image": camera_image(image, self.image_hw, "frame encoder")})[0]
 
     def push(self, image) -> None:
-        self.buffer.append(self.encode(image))
+        """Keep a frame (a path, or a copy of the array: a camera driver may reuse its buffer)."""
+        self.buffer.append([image if isinstance(image, (str, Path)) else np.array(image, copy=True), None])
+
+    def logits(self) -> np.ndarray:
+        """(T, 1000) logits of the buffered frames, oldest first; each frame is encoded once."""
+        for entry in self.buffer:
+            if entry[1] is None:
+                entry[0], entry[1] = None, self.encode(entry[0])
+        return np.stack([entry[1] for entry in self.buffer])
 
     def keep_last(self, n: int) -> None:
         """Drop all but the `n` most recent frames (n = 0 empties the buffer)."""
@@ -82,7 +87,7 @@ class SequenceRelocaliser:
 
     @property
     def ready(self) -> bool:
-        return len(self.buffer) >= self.min_frames
+        return len(self.buffer) >= self.length
 
     def describe(self, frames: np.ndarray) -> np.ndarray:
         """(T, 1000) frame logits -> whitened sequence descriptor (dims,)."""
@@ -94,7 +99,7 @@ class SequenceRelocaliser:
         product of whitened descriptors, one candidate per database window; weights normalised."""
         if not self.buffer:
             raise BundleError("no frames in the sequence buffer yet")
-        q = self.describe(np.stack(self.buffer))
+        q = self.describe(self.logits())
         k = min(len(weights), len(self.db))
         top = np.argsort(-(self.db @ q), kind="stable")[:k]
         w = np.asarray(weights[:k], dtype=np.float64)

@@ -125,6 +125,8 @@ def test_closed_loop_injects_the_sequence_every_step_from_lost_until_tracking(mi
     assert sources[first:back + 1] == ["sequence"] * (back + 1 - first)
     assert sources[back + 1:] == [None] * (len(states) - back - 1)
     assert [s for s, _, _ in loc.filter.injected] == list(range(first, back + 1))
+    # Frames are encoded only for the queries, each once: the 3 of the first query, then one new a step.
+    assert n["v"] == length + (back - first)
     for _, w, spread in loc.filter.injected:
         np.testing.assert_allclose(w.sum(), 1.0)  # injection weights stay normalised
         assert spread == pytest.approx(np.radians(fc.sequence_heading_std_deg))
