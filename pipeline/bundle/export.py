@@ -29,6 +29,7 @@ from pipeline.runtime.bundle import MANIFEST, SCHEMA_VERSION, sha256_of
 
 DB_FILES = ("database_ipa.parquet", "database_rpa.parquet", "catalog.parquet", "report.json")
 OPTIONAL_DB_FILES = ("ipa_whitening.npz", "rpa_whitening.npz", "config.yaml")
+SEQUENCE_FILES = ("weights.safetensors", "config.json", "database.parquet", "whitening.npz")
 
 
 def _require(paths: list[Path], fix: str) -> None:
@@ -104,8 +105,6 @@ def export_sequence(cfg: SitelocConfig, seq_dir: Path, tmp: Path, images: list) 
     from pipeline.sequence.frames import FrameEncoder
     from pipeline.sequence.onnx_export import export_frame_encoder, export_sequence_onnx, load_sequence_model
 
-    _require([seq_dir / f for f in ("weights.safetensors", "config.json", "database.parquet", "whitening.npz")],
-             "point --sequence at `siteloc train-sequence`'s output")
     model, seq_cfg = load_sequence_model(seq_dir)
     frames_path = Path(seq_cfg["frames"])
     used = seq_cfg.get("frame_encoder") or {}
@@ -146,6 +145,9 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
     _require([data / "map.yaml"], "point --data at the output of `siteloc ingest`")
     _require([model / "weights.safetensors", model / "config.json"], "point MODEL at `siteloc train-detector`'s output")
     _require([index / f for f in DB_FILES], "point INDEX at `siteloc build-index`'s output")
+    if inputs.get("sequence") is not None:  # checked before any export work starts
+        _require([Path(inputs["sequence"]) / f for f in SEQUENCE_FILES],
+                 "point --sequence at `siteloc train-sequence`'s output")
     site = data.name
     if (data / "site.yaml").is_file():
         from pipeline.io.site import read_site

@@ -186,3 +186,7 @@ def test_export_refuses_a_sequence_model_whose_frames_were_encoded_otherwise(mic
     assert "size 48" in err.value.render()
     leftovers = list((tmp_path / "b").glob("*")) if (tmp_path / "b").exists() else []
     assert leftovers == []  # nothing published
+    with pytest.raises(InputError, match="4 required files missing") as err:  # refused before any export work
+        run_export(cfg, inputs={"model": model, "index": index, "data": ing, "sequence": tmp_path / "none"},
+                   outputs={"out": tmp_path / "c"})
+    assert "point --sequence at" in err.value.render() and not (tmp_path / "c").exists()
