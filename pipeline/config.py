@@ -174,6 +174,10 @@ class FilterConfig(Strict):
     inject_while_relocalising: bool = Field(
         False, description="inject at every step with an image until the filter tracks again, not only at the "
         "step it declares itself lost (faster on a site whose retrieval is good; wrong candidates pull it away)")
+    seed_with: Literal["candidates", "area_prior"] = Field(
+        "candidates", description="how the first camera image starts the filter: around its Top-4 retrieved "
+        "poses (seed 000), or over the free space of its most probable (room, area) classes (seed 001's prior; "
+        "needs a bundle exported with --prior)")
     relocalise_with: Literal["auto", "image", "sequence", "both"] = Field(
         "auto", description="what injects particles after the filter is lost: the current image's Top-4 at the "
         "step it is declared lost (image); the Top-4 of the last sequence.length frames once that many are seen, "
@@ -284,6 +288,37 @@ class SequenceConfig(Strict):
     seed: int = 0
 
 
+class PriorConfig(Strict):
+    """`siteloc prior ...`: seed 001's area prior from pretrained multi-layer CNN features (no training)."""
+
+    backbone: Literal["efficientnet_lite0", "alexnet", "vgg16"] = Field(
+        "efficientnet_lite0", description="pretrained CNN (the paper: AlexNet; Lite0's ImageNet weights ship offline)")
+    weights: str | None = Field("imagenet", description="imagenet, a local state-dict file, or null for random")
+    input_size: int = Field(224, ge=32, description="images are resized to this square (the network's input)")
+    batch: int = Field(16, ge=1, description="images per network pass")
+    device: str = Field("auto", description="auto (a GPU when torch sees one), cpu, cuda or cuda:N")
+    compression: Literal["ipca", "kpca", "srp", "grp", "none"] = Field(
+        "srp", description="per-layer compression (the paper picked sparse random projection)")
+    n_components: int = Field(128, ge=2, description="compressed dimension (the paper: 128)")
+    k: int = Field(10, ge=1, description="neighbours returned by the ball tree per layer (the paper: 10)")
+    leaf_size: int = Field(40, ge=1, description="ball tree leaf size")
+    # The defaults are the best of `prior evaluate` on the office site (docs/prior.md); the paper preset
+    # keeps the paper's choice (Spearman, most weight on pool5).
+    measure: Literal["spearman", "pearson", "euclidean", "gaussian"] = Field(
+        "gaussian", description="how the neighbours' classes are scored: spearman or pearson correlation, "
+        "euclidean (the tree's order), or gaussian (each class's Gaussian)")
+    layer_weights: tuple[float, float, float] = Field(
+        (1.0, 1.0, 1.0), description="relative weights of the three layers, low to high (normalised to sum 1)")
+    shrinkage: float | None = Field(
+        None, ge=0, le=1, description="covariance shrinkage of the per-(room, area) Gaussians; null: Ledoit-Wolf")
+    temperature: float | None = Field(
+        None, gt=0, description="Gaussian log-likelihoods are divided by this before the softmax; null: the dimension")
+    area_radius_m: float = Field(2.0, gt=0, description="an area's free space: cells within this of its stops, "
+                                 "nearer to them than to any other area's")
+    max_areas: int = Field(3, ge=1, description="seeding spreads particles over at most this many top areas")
+    seed: int = 0
+
+
 class EvaluateConfig(Strict):
     """`siteloc evaluate`: the paper's localization experiments on a site's query runs (seed 000 section 4)."""
 
@@ -306,6 +341,7 @@ class SitelocConfig(Strict):
     retrieval: RetrievalConfig = RetrievalConfig()
     export: ExportConfig = ExportConfig()
     sequence: SequenceConfig = SequenceConfig()
+    prior: PriorConfig = PriorConfig()
     evaluate: EvaluateConfig = EvaluateConfig()
 
 

@@ -13,6 +13,7 @@ from stages import (
     ingest,
     ingest_log,
     localize,
+    prior,
     retrieval,
     sequence,
     synth,
@@ -49,6 +50,7 @@ app.command("export", help=help_text(export.HELP))(export.export)
 app.command("localize", help=help_text(localize.HELP))(localize.localize)
 app.command("evaluate", help=help_text(evaluate.HELP))(evaluate.evaluate)
 app.command("demo", help=help_text(demo.HELP))(demo.demo)
+app.add_typer(prior.app, name="prior", help=help_text(prior.APP_HELP))
 app.add_typer(config_cmd.app, name="config")
 
 

@@ -25,6 +25,11 @@ With --sequence (the output of `siteloc train-sequence`), the bundle also carrie
 database: the Localizer can then re-localize from its last frames after a kidnapping
 (filter.relocalise_with: sequence or both).
 
+With --prior (the output of `siteloc prior build`), the bundle also carries seed 001's multi-layer
+encoder as ONNX (checked against torch) and the area prior: with filter.seed_with=area_prior the
+Localizer starts the filter over the free space of the first image's most probable (room, area) classes
+instead of around its Top-4 retrieved poses.
+
 Example: siteloc export models/office/detector data/office/index data/office/ingested --out bundles
 """
 
@@ -35,6 +40,9 @@ def export(
     data: Annotated[Path, typer.Argument(help="The ingested site.", show_default=False)],
     sequence: Annotated[Path | None, typer.Option(
         "--sequence", help="A trained sequence LSTM (train-sequence): adds image-sequence re-localization.",
+        show_default=False)] = None,
+    prior: Annotated[Path | None, typer.Option(
+        "--prior", help="An area prior (prior build): adds seeding the filter over (room, area) classes.",
         show_default=False)] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Directory the bundle goes into.")] = Path("bundles"),
     version: Annotated[str | None, typer.Option("--version", help="Bundle version [default: export.version].")] = None,
@@ -49,7 +57,8 @@ def export(
         from pipeline.bundle.export import run_export
 
         cfg = load(config, (set_ or []) + ([f"export.version={json.dumps(version)}"] if version else []))  # a string
-        inputs = {"model": model, "index": index, "data": data, **({"sequence": sequence} if sequence else {})}
+        inputs = {"model": model, "index": index, "data": data, **({"sequence": sequence} if sequence else {}),
+                  **({"prior": prior} if prior else {})}
         bundle = run_export(cfg, inputs=inputs, outputs={"out": out}, force=force)
         manifest = json.loads((bundle / "manifest.json").read_text())
         parity = json.loads((bundle / "models" / "describer.json").read_text())["parity"]["max_differences"]
@@ -62,6 +71,10 @@ def export(
             typer.echo(f"sequence re-localization: {seq['length']} frames; ONNX vs torch: frame logits "
                        f"{seq['frames']['parity']['max_abs']:.1e}, LSTM "
                        f"{max(seq['lstm_parity']['max_abs_by_length'].values()):.1e}")
+        if prior:
+            pm = json.loads((bundle / "models" / "prior.json").read_text())
+            typer.echo(f"area prior: {pm['encoder']['backbone']} {', '.join(pm['encoder']['layers'])}; ONNX vs torch "
+                       f"{max(pm['parity']['max_abs_by_layer'].values()):.1e} (filter.seed_with=area_prior uses it)")
         echo_path("bundle", bundle)
         if cfg.export.archive:
             echo_path("archive", bundle.with_name(bundle.name + ".tar.gz"))

@@ -30,6 +30,7 @@ from pipeline.runtime.bundle import MANIFEST, SCHEMA_VERSION, sha256_of
 DB_FILES = ("database_ipa.parquet", "database_rpa.parquet", "catalog.parquet", "report.json")
 OPTIONAL_DB_FILES = ("ipa_whitening.npz", "rpa_whitening.npz", "config.yaml")
 SEQUENCE_FILES = ("weights.safetensors", "config.json", "database.parquet", "whitening.npz")
+PRIOR_FILES = ("prior.json",)
 
 
 def _require(paths: list[Path], fix: str) -> None:
@@ -131,6 +132,24 @@ def export_sequence(cfg: SitelocConfig, seq_dir: Path, tmp: Path, images: list) 
     return meta
 
 
+def export_prior(cfg: SitelocConfig, prior, prior_dir: Path, tmp: Path, images: list) -> dict:
+    """models/prior.onnx (+ .json), checked against torch, and prior/ (`prior build`'s files) for
+    `pipeline.runtime.areaprior`."""
+    from pipeline.io.atomic import write_text_atomic
+    from pipeline.prior.onnx_export import export_prior_encoder
+    from pipeline.prior.seeding import encoder_for
+
+    enc = encoder_for(prior, cfg.prior.weights)
+    meta = export_prior_encoder(enc, tuple(int(v) for v in images[0].shape[-2:]), tmp / "models" / "prior.onnx",
+                                images)
+    write_text_atomic(tmp / "models" / "prior.json", json.dumps(meta, indent=2) + "\n")
+    (tmp / "prior").mkdir()
+    for f in sorted(prior_dir.iterdir()):
+        if f.is_file() and (f.name == "prior.json" or f.suffix in (".npz", ".parquet")):
+            shutil.copyfile(f, tmp / "prior" / f.name)
+    return meta
+
+
 def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path], force: bool = False,
                progress: bool = True) -> Path:
     """Write `<out>/<site>-<version>/` (+ .tar.gz); returns the bundle directory."""
@@ -148,6 +167,11 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
     if inputs.get("sequence") is not None:  # checked before any export work starts
         _require([Path(inputs["sequence"]) / f for f in SEQUENCE_FILES],
                  "point --sequence at `siteloc train-sequence`'s output")
+    if inputs.get("prior") is not None:
+        from pipeline.prior.model import AreaPrior
+
+        _require([Path(inputs["prior"]) / f for f in PRIOR_FILES], "point --prior at `siteloc prior build`'s output")
+        prior = AreaPrior.load(Path(inputs["prior"]))  # refuses a damaged prior before any export work
     site = data.name
     if (data / "site.yaml").is_file():
         from pipeline.io.site import read_site
@@ -182,9 +206,17 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
         write_text_atomic(tmp / "models" / "describer.json", json.dumps(meta, indent=2) + "\n")
         if inputs.get("sequence") is not None:
             export_sequence(cfg, Path(inputs["sequence"]), tmp, images)
+        if inputs.get("prior") is not None:
+            export_prior(cfg, prior, Path(inputs["prior"]), tmp, images)
+        elif cfg.filter.seed_with == "area_prior":
+            from pipeline.errors import ConfigError
+
+            raise ConfigError("filter.seed_with is area_prior but no --prior was given: export with "
+                              "--prior models/prior, or set filter.seed_with=candidates")
         settings = {"filter": cfg.filter.model_dump(mode="json"),
                     "retrieval": {"top_n": r.top_n, "rerank": r.rerank, "query_regions": r.query_regions,
                                   "candidate_weights": list(r.candidate_weights)},
+                    "prior": {"area_radius_m": cfg.prior.area_radius_m, "max_areas": cfg.prior.max_areas},
                     "laser": laser_settings(data), "camera": {"height": image_hw[0], "width": image_hw[1]}}
         write_text_atomic(tmp / "filter.yaml", yaml.safe_dump(settings, sort_keys=False))
         lock = Path.cwd() / "dvc.lock"

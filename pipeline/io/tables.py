@@ -160,9 +160,25 @@ SEQUENCES = pa.schema(
     ]
 )
 
+# Seed 001's per-layer image vectors (`siteloc prior features`: one file per CNN layer, raw; `prior build`:
+# the database, compressed), with the image's pose and its (room, area) class.
+MULTILAYER = pa.schema(
+    [
+        pa.field("image_id", pa.string(), nullable=False),
+        pa.field("stop_id", pa.string(), nullable=False),
+        pa.field("room", pa.string(), nullable=False),
+        pa.field("area", pa.string(), nullable=False),
+        pa.field("split", pa.string(), nullable=False),
+        pa.field("x", pa.float64(), nullable=False),
+        pa.field("y", pa.float64(), nullable=False),
+        pa.field("theta", pa.float64(), nullable=False),
+        pa.field("descriptor", pa.list_(pa.float32()), nullable=False),
+    ]
+)
+
 SCHEMAS: dict[str, pa.Schema] = {"images": IMAGES, "boxes": BOXES, "runs": RUNS, "estimates": ESTIMATES,
                                  "ipa": IPA, "rpa": RPA, "catalog": CATALOG, "frames": FRAMES,
-                                 "sequences": SEQUENCES}
+                                 "sequences": SEQUENCES, "multilayer": MULTILAYER, "prior_db": MULTILAYER}
 
 
 def _contract(kind: str, table: pa.Table | None = None) -> pa.Schema:

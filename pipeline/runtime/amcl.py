@@ -105,6 +105,12 @@ class AdaptiveMCL:
         """Weighted candidate poses (image retrieval's Top-K; 4:3:2:1 by default), each with a Gaussian spread."""
         self._reset(self._around(poses, weights, n or self.cfg.max_particles), FilterState.RELOCALISING)
 
+    def init_regions(self, cell_region: np.ndarray, weights, n: int | None = None) -> None:
+        """Global localization from a prior over parts of the map (seed 001's (room, area) probabilities):
+        particles uniform over each region's free cells, as many as its weight says."""
+        self._reset(self.map.sample_regions(cell_region, weights, n or self.cfg.max_particles, self.rng),
+                    FilterState.RELOCALISING)
+
     def inject(self, poses, weights=None, n: int | None = None, std_theta: float | None = None) -> int:
         """Add n particles drawn around candidate poses (the paper: 1000 per step while lost).
 

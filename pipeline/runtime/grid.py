@@ -91,6 +91,30 @@ class LaserMap:
         y = self.origin_y + (row + u[1]) * self.resolution
         return np.column_stack([x, y, (u[2] * 2.0 - 1.0) * np.pi])
 
+    def sample_regions(self, cell_region: np.ndarray, weights: np.ndarray, n: int,
+                       rng: np.random.Generator) -> np.ndarray:
+        """(n, 3) poses over labelled parts of the free space: `cell_region` (K,) gives each free cell's
+        region (-1: none), `weights` (R,) each region's share of the particles; uniform within a region
+        (and within a cell), uniform headings. Regions without a free cell get no particle."""
+        cell_region = np.asarray(cell_region, dtype=np.int64)
+        if cell_region.shape != self.free_cells.shape:
+            raise ValueError(f"cell_region has {cell_region.shape} entries, the map {len(self.free_cells)} free cells")
+        w = np.asarray(weights, dtype=np.float64).copy()
+        sizes = np.bincount(cell_region[cell_region >= 0], minlength=len(w))[: len(w)]
+        w[sizes == 0] = 0.0
+        if not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+            raise ValueError("no region with free cells has a positive weight")
+        counts = rng.multinomial(n, w / w.sum())
+        order = np.argsort(cell_region, kind="stable")
+        starts = np.searchsorted(cell_region[order], np.arange(len(w)))
+        picks = [order[starts[r] + rng.integers(0, sizes[r], size=c)] for r, c in enumerate(counts) if c]
+        idx = self.free_cells[np.concatenate(picks)]
+        row, col = np.divmod(idx, self.width)
+        u = rng.random((3, n))
+        x = self.origin_x + (col + u[0]) * self.resolution
+        y = self.origin_y + (row + u[1]) * self.resolution
+        return np.column_stack([x, y, (u[2] * 2.0 - 1.0) * np.pi])
+
     def sample_around(self, centres: np.ndarray, weights: np.ndarray, n: int, std_xy: float, std_theta: float,
                       rng: np.random.Generator, tries: int = 8) -> np.ndarray:
         """(n, 3) poses drawn around weighted centre poses (Gaussian), redrawn until they lie in free space.

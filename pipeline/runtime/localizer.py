@@ -37,7 +37,7 @@ class Estimate:
     n_particles: int
     updated: bool  # False when the filter held the update back (not enough travel)
     candidates: np.ndarray | None  # (K, 4) x, y, theta, weight when retrieval ran this step
-    source: str | None  # what gave the candidates: "image" or "sequence" (None when none ran)
+    source: str | None  # what gave the candidates: "image", "sequence" or "area_prior" (None when none ran)
     best_likelihood: float  # per-beam relative likelihood of the best particle, (0, 1]
 
 
@@ -77,6 +77,16 @@ class Localizer:
         from pipeline.runtime.sequence import SequenceRelocaliser, has_sequence
 
         self.sequence = SequenceRelocaliser(root, threads=describer_threads) if has_sequence(root) else None
+        from pipeline.runtime.areaprior import AreaPriorSeeder, has_prior
+
+        self.area_prior = None
+        if has_prior(root):
+            ps = settings.get("prior") or {}
+            self.area_prior = AreaPriorSeeder(root, self.map, area_radius_m=ps.get("area_radius_m", 2.0),
+                                              max_areas=ps.get("max_areas", 3), threads=describer_threads)
+        if fcfg.seed_with == "area_prior" and self.area_prior is None:
+            raise BundleError(f"{root}: filter.seed_with is 'area_prior' but the bundle has no area prior; export "
+                              f"it with --prior or set filter.seed_with=candidates")
         if fcfg.relocalise_with in ("sequence", "both") and self.sequence is None:
             raise BundleError(f"{root}: filter.relocalise_with is '{fcfg.relocalise_with}' but the bundle has no "
                               f"sequence model; export it with --sequence or set filter.relocalise_with=image")
@@ -174,7 +184,12 @@ class Localizer:
         if use_sequence and image is not None:
             self.sequence.push(image)
         if not self.started:
-            if image is not None:
+            if image is not None and self.filter_config.seed_with == "area_prior":
+                # Seed 001: whole areas, not poses; retrieval still injects once the filter is lost.
+                weights = self.area_prior.weights(self.area_prior.probabilities(image))
+                self.filter.init_regions(self.area_prior.cells, weights)
+                self.seeded_by_retrieval, source = True, "area_prior"
+            elif image is not None:
                 cands = self.candidates(image)
                 self.filter.init_candidates(cands[:, :3], cands[:, 3])
                 self.seeded_by_retrieval, source = True, "image"

@@ -114,7 +114,8 @@ def test_an_archive_round_trips_and_a_hostile_one_is_refused(bundle, tmp_path):
 
 def test_the_runtime_modules_import_without_torch():
     code = ("import sys; import pipeline.runtime.localizer, pipeline.runtime.describer, pipeline.runtime.bundle, "
-            "pipeline.runtime.amcl, pipeline.retrieval.database, pipeline.retrieval.search; "
+            "pipeline.runtime.amcl, pipeline.retrieval.database, pipeline.retrieval.search, "
+            "pipeline.runtime.areaprior, pipeline.prior.model, pipeline.descriptors.compression; "
             "print('torch' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parents[2])

@@ -1,0 +1,1 @@
+"""CNN layer descriptors (multilayer) and their compression to a few dimensions (compression)."""

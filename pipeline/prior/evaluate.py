@@ -1,0 +1,156 @@
+"""Stage `prior evaluate`: seed 001's experiments on a site (its Table I and layer-weight comparison).
+
+Database: the `train` split of the capture images; queries: the `test` split (whole held-out stops), and
+with `changed` every image of the site after `synth --change` against the same database. Measures:
+
+- Table I: per compression (IPCA, KPCA, SRP, GRP, uncompressed) the memory a query needs (the
+  compression's arrays plus the database vectors, mean over the three layers, as the paper), the time of
+  one query (three layers: compression, ball tree k=10, scoring), the share of queries with their
+  (room, area) among the k neighbours (the paper's "returns the correct index", mean over the layers),
+  and top-1 area and room accuracy with the configured measure and layer weights.
+- Per measure (spearman, pearson, euclidean, gaussian) x layer weights: top-1 area and room accuracy.
+- With a bundle and the ingested site: global localization seeded three ways on the same query runs
+  (the steps before their first kidnapping): particles over the first image's most probable areas (the
+  prior), around its Top-4 retrieved poses (seed 000), or uniform; steps to converge.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import SitelocConfig, write_effective_config
+from pipeline.prior.model import MEASURES, AreaPrior, PriorSettings
+
+WEIGHT_GRID = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0), (1 / 3, 1 / 3, 1 / 3), (0.6, 0.3, 0.1),
+               (0.1, 0.3, 0.6), (0.5, 0.5, 0.0), (0.5, 0.0, 0.5), (0.0, 0.5, 0.5))
+COMPRESSIONS = ("ipca", "kpca", "srp", "grp", "none")
+
+
+def subset(meta: dict, idx) -> dict:
+    return {k: [v[i] for i in idx] for k, v in meta.items()}
+
+
+def settings_of(cfg: SitelocConfig) -> PriorSettings:
+    p = cfg.prior
+    return PriorSettings(p.k, p.leaf_size, p.measure, tuple(p.layer_weights), p.temperature)
+
+
+def build_prior(cfg: SitelocConfig, meta: dict, raw: dict, encoder: dict, compression: str | None = None) -> AreaPrior:
+    p = cfg.prior
+    return AreaPrior.build(meta, raw, compression=compression or p.compression, n_components=p.n_components,
+                           seed=p.seed, settings=settings_of(cfg), encoder=encoder, shrinkage=p.shrinkage)
+
+
+def truth(prior: AreaPrior, meta: dict) -> np.ndarray:
+    """Class index of each query (-1 when its (room, area) is not in the database)."""
+    index = {c: i for i, c in enumerate(prior.classes)}
+    return np.array([index.get((r, a), -1) for r, a in zip(meta["room"], meta["area"], strict=True)])
+
+
+def accuracy(prior: AreaPrior, probs: np.ndarray, labels: np.ndarray, rooms: list[str]) -> dict:
+    pred = probs.argmax(axis=1)
+    room_of = np.array([c[0] for c in prior.classes])
+    return {"area": round(float(np.mean(pred == labels)), 4),
+            "room": round(float(np.mean(room_of[pred] == np.asarray(rooms))), 4)}
+
+
+def weight_grid(prior: AreaPrior, raw_q: dict, meta_q: dict) -> dict:
+    """{measure: [{weights, area, room}]} over WEIGHT_GRID."""
+    labels = truth(prior, meta_q)
+    compressed = prior.compress(raw_q)
+    found = prior.neighbours(compressed)
+    out = {}
+    for measure in MEASURES:
+        per = prior.layer_probabilities(compressed, measure, found)
+        out[measure] = [{"weights": [round(w, 3) for w in ws],
+                         **accuracy(prior, prior.combine(per, ws), labels, meta_q["room"])} for ws in WEIGHT_GRID]
+    return out
+
+
+def table_one(cfg: SitelocConfig, meta_db, raw_db, meta_q, raw_q, encoder, *, timed: int = 100,
+              progress: bool = True) -> list[dict]:
+    from pipeline.progress import progress_bar
+
+    rows = []
+    for comp in progress_bar(COMPRESSIONS, desc="table I", unit="compression", enabled=progress):
+        t0 = time.perf_counter()
+        prior = build_prior(cfg, meta_db, raw_db, encoder, comp)
+        build_s = time.perf_counter() - t0
+        labels = truth(prior, meta_q)
+        compressed = prior.compress(raw_q)
+        found = prior.neighbours(compressed)
+        hit = np.mean([np.mean([labels[q] in prior.labels[found[n][1][q]] for q in range(len(labels))])
+                       for n in prior.layers])
+        acc = accuracy(prior, prior.combine(prior.layer_probabilities(compressed, found=found)), labels,
+                       meta_q["room"])
+        n_t = min(timed, len(labels))
+        prior.probabilities({n: raw_q[n][:1] for n in prior.layers})  # trees and caches built before timing
+        t0 = time.perf_counter()
+        for q in range(n_t):
+            prior.probabilities({n: raw_q[n][q:q + 1] for n in prior.layers})
+        query_s = (time.perf_counter() - t0) / max(n_t, 1)
+        mem = prior.nbytes()
+        rows.append({"compression": comp,
+                     "dims": {n: int(prior.vectors[n].shape[1]) for n in prior.layers},
+                     "memory_kb_mean_layer": round(float(np.mean(list(mem.values()))) / 1024, 1),
+                     "memory_kb_by_layer": {n: round(v / 1024, 1) for n, v in mem.items()},
+                     "query_ms": round(query_s * 1000, 3), "build_s": round(build_s, 2),
+                     f"hit_at_{prior.settings.k}": round(float(hit), 4), "area_accuracy": acc["area"],
+                     "room_accuracy": acc["room"]})
+    return rows
+
+
+def run_prior_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
+                       force: bool = False, progress: bool = True) -> Path:
+    from pipeline.errors import OutputExistsError
+    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.prior.features import read_layers
+    from pipeline.prior.report import write_figures, write_report
+
+    out = Path(outputs["out"])
+    if out.exists() and not force:
+        raise OutputExistsError(out)
+    meta, raw, rep = read_layers(Path(inputs["features"]))
+    split = np.asarray(meta["split"])
+    db, q = np.flatnonzero(split == "train"), np.flatnonzero(split != "train")
+    if len(db) < 2 or len(q) == 0:
+        from pipeline.errors import InputError, Problem
+
+        raise InputError(f"{inputs['features']}: nothing to evaluate", [Problem(
+            str(inputs["features"]), f"{len(db)} train and {len(q)} test images",
+            fix="ingest with a test split (ingest.split.test_fraction > 0)")])
+    meta_db, raw_db = subset(meta, db), {n: v[db] for n, v in raw.items()}
+    meta_q, raw_q = subset(meta, q), {n: v[q] for n, v in raw.items()}
+    metrics = {"site": {"database_images": len(db), "query_images": len(q),
+                        "classes": len(set(zip(meta_db["room"], meta_db["area"], strict=True))),
+                        "rooms": len(set(meta_db["room"]))},
+               "encoder": rep["encoder"], "settings": cfg.prior.model_dump(mode="json")}
+    metrics["table_one"] = table_one(cfg, meta_db, raw_db, meta_q, raw_q, rep["encoder"], progress=progress)
+    prior = build_prior(cfg, meta_db, raw_db, rep["encoder"])
+    metrics["layers"] = list(prior.layers)
+    metrics["weights"] = weight_grid(prior, raw_q, meta_q)
+    if inputs.get("changed"):
+        meta_c, raw_c, rep_c = read_layers(Path(inputs["changed"]))
+        if rep_c["encoder"]["backbone"] != rep["encoder"]["backbone"] or rep_c["dims"] != rep["dims"]:
+            from pipeline.errors import InputError, Problem
+
+            raise InputError(f"{inputs['changed']}: other features", [Problem(
+                str(inputs["changed"]), f"encoded with {rep_c['encoder']['backbone']} {rep_c['dims']}, the "
+                f"database with {rep['encoder']['backbone']} {rep['dims']}",
+                fix="run `siteloc prior features` on the changed site with the same config")])
+        metrics["changed"] = {"query_images": len(meta_c["image_id"]), "weights": weight_grid(prior, raw_c, meta_c)}
+    if inputs.get("bundle") and inputs.get("data"):
+        from pipeline.prior.seeding import compare_seeding
+
+        metrics["seeding"] = compare_seeding(cfg, prior, Path(inputs["bundle"]), Path(inputs["data"]),
+                                             progress=progress)
+    with atomic_dir(out, force=force) as tmp:
+        write_text_atomic(tmp / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+        figures = write_figures(tmp, metrics)
+        write_report(tmp / "report.md", metrics, figures)
+        write_effective_config(cfg, tmp, stage="prior-evaluate", inputs=inputs)
+    return out

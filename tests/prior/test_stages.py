@@ -1,0 +1,173 @@
+"""The area prior from the command line on the CI micro site: features, build, append, query, evaluate,
+and a bundle that seeds the runtime filter over areas without torch."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from stages.app import app
+
+runner = CliRunner()
+SETS = ["prior.weights=null", "prior.input_size=64", "prior.n_components=8", "prior.k=4", "evaluate.trials=1"]
+
+
+def cli(*argv):
+    args = list(argv) + ["--config", "ci"] + [x for s in SETS for x in ("--set", s)]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+@pytest.fixture(scope="module")
+def prior_dirs(micro_bundle, tmp_path_factory):
+    _, ing, _, _, bundle = micro_bundle
+    root = tmp_path_factory.mktemp("prior")
+    cli("prior", "features", str(ing), "--out", str(root / "f"))
+    cli("prior", "build", str(root / "f"), "--out", str(root / "p"))
+    return ing, bundle, root
+
+
+def test_features_cover_every_image_with_its_labels(prior_dirs):
+    from pipeline.io import tables
+    from pipeline.prior.features import read_layers
+
+    ing, _, root = prior_dirs
+    meta, raw, rep = read_layers(root / "f")
+    images = tables.read_table(ing / "images.parquet", "images").to_pydict()
+    assert meta["image_id"] == images["image_id"] and meta["area"] == images["area"]
+    assert set(raw) == {"pool", "head", "logits"} and raw["pool"].shape[1] == 2880
+    np.testing.assert_allclose(np.linalg.norm(raw["head"], axis=1), 1.0, rtol=1e-5)
+    assert (root / "f" / "config.yaml").is_file() and rep["encoder"]["weights"] == "none (random init)"
+
+
+def test_build_query_and_append(prior_dirs, tmp_path):
+    from pipeline.prior.model import AreaPrior
+
+    ing, _, root = prior_dirs
+    prior = AreaPrior.load(root / "p")
+    n_train = len(prior.labels)
+    assert set(prior.rows["split"]) == {"train"}
+    image = ing / prior.rows["image_id"][0]
+    out = json.loads(cli("prior", "query", str(root / "p"), str(image), "--json", "--top", "2"))
+    probs = [a["probability"] for a in out[0]["areas"]]
+    assert len(probs) == 2 and probs[0] >= probs[1] and 0 < sum(probs) <= 1 + 1e-6
+    # appending the held-out stops keeps every old row as it was
+    result = runner.invoke(app, ["prior", "append", str(root / "p"), str(root / "f"), "--out", str(tmp_path / "p2"),
+                                 "--config", "ci", *[x for s in SETS for x in ("--set", s)]])
+    assert result.exit_code == 1 and "in the prior already" in result.output and "Traceback" not in result.output
+    from pipeline.config import load_config
+    from pipeline.prior.build import run_prior_append
+    from pipeline.prior.features import read_layers
+
+    meta, _, _ = read_layers(root / "f")
+    test_rooms = sorted({r for r, s in zip(meta["room"], meta["split"], strict=True) if s == "test"})
+    assert test_rooms
+    # features of the held-out images only, as a site team would compute for a new wing
+    sub = tmp_path / "f_test"
+    _write_subset(root / "f", sub, [s == "test" for s in meta["split"]])
+    run_prior_append(load_config("ci", SETS), inputs={"prior": root / "p", "features": sub},
+                     outputs={"out": tmp_path / "p2"})
+    grown = AreaPrior.load(tmp_path / "p2")
+    assert len(grown.labels) == len(meta["image_id"]) > n_train
+    for n in prior.layers:
+        np.testing.assert_array_equal(grown.vectors[n][:n_train], prior.vectors[n])
+    report = json.loads((tmp_path / "p2" / "report.json").read_text())
+    assert report["appended"][-1]["images"] == len(meta["image_id"]) - n_train
+
+
+def _write_subset(src: Path, dst: Path, keep: list[bool]):
+    import shutil
+
+    from pipeline.io import tables
+
+    dst.mkdir()
+    shutil.copyfile(src / "report.json", dst / "report.json")
+    for f in src.glob("*.parquet"):
+        t = tables.read_table(f, "multilayer")
+        tables.write_table(dst / f.name, t.filter(np.array(keep)), "multilayer")
+
+
+def test_evaluate_writes_table_one_and_the_seeding_comparison(prior_dirs):
+    ing, bundle, root = prior_dirs
+    out = cli("prior", "evaluate", str(root / "f"), "--bundle", str(bundle), "--data", str(ing), "--out",
+              str(root / "r"))
+    assert "Table I" in out
+    m = json.loads((root / "r" / "metrics.json").read_text())
+    assert [r["compression"] for r in m["table_one"]] == ["ipca", "kpca", "srp", "grp", "none"]
+    for r in m["table_one"]:
+        assert 0 <= r["area_accuracy"] <= 1 and r["memory_kb_mean_layer"] > 0 and r["query_ms"] > 0
+    assert {r["compression"]: r["dims"]["pool"] for r in m["table_one"]}["none"] == 2880
+    assert set(m["weights"]) == {"spearman", "pearson", "euclidean", "gaussian"}
+    sd = m["seeding"]
+    assert set(sd["summary"]) == {"area_prior", "candidates", "uniform"}
+    assert all(s["replays"] == len(sd["starts"]) > 0 for s in sd["summary"].values())
+    for f in ("report.md", "table_one.png", "layer_weights.png", "seeding.png", "config.yaml"):
+        assert (root / "r" / f).is_file()
+
+
+def test_evaluate_refuses_half_a_seeding_request(prior_dirs):
+    _, bundle, root = prior_dirs
+    result = runner.invoke(app, ["prior", "evaluate", str(root / "f"), "--bundle", str(bundle), "--out",
+                                 str(root / "r2")])
+    assert result.exit_code == 1 and "--bundle and --data go together" in result.output
+
+
+def test_bundle_with_a_prior_seeds_the_filter_over_areas_without_torch(prior_dirs, micro_bundle, tmp_path):
+    from pipeline.bundle.export import run_export
+    from pipeline.config import load_config
+    from pipeline.prior.model import AreaPrior
+    from pipeline.runtime.localizer import Localizer
+
+    cfg_sets = [*SETS, "filter.seed_with=area_prior", "export.archive=false"]
+    _, ing, model, index, _ = micro_bundle
+    _, _, root = prior_dirs
+    bundle = run_export(load_config("ci", cfg_sets), inputs={"model": model, "index": index, "data": ing,
+                                                             "prior": root / "p"}, outputs={"out": tmp_path})
+    meta = json.loads((bundle / "models" / "prior.json").read_text())
+    assert max(meta["parity"]["max_abs_by_layer"].values()) <= meta["parity"]["tolerance"]
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    assert "prior/prior.json" in manifest["files"] and "models/prior.onnx" in manifest["files"]
+    loc = Localizer.from_bundle(bundle)
+    from pipeline.evaluation.replay import load_run
+
+    run = load_run(sorted((ing / "runs").glob("query_*.parquet"))[0])
+    est = loc.update(run.odom[0], run.ranges[0], image=ing / run.image_ids[0])
+    assert est.source == "area_prior" and est.candidates is None
+    # every particle was born in one of the seeded areas' free space
+    probs = loc.area_prior.probabilities(ing / run.image_ids[0])
+    seeded = np.flatnonzero(loc.area_prior.weights(probs) > 0)
+    assert np.isin(loc.area_prior.cells, seeded).any()
+    # the ONNX encoder gives the torch encoder's layers, and the probabilities are the prior's of them
+    from pipeline.detection.inference import load_image
+    from pipeline.prior.seeding import encoder_for
+
+    prior = AreaPrior.load(root / "p")
+    frame = ing / run.image_ids[0]
+    torch_layers = encoder_for(prior, None)([load_image(frame)])
+    onnx_layers = loc.area_prior.layers(frame)
+    for n in prior.layers:
+        np.testing.assert_allclose(onnx_layers[n], torch_layers[n], atol=1e-4)
+    np.testing.assert_array_equal(probs, prior.probabilities(onnx_layers)[0])
+    code = ("import sys; from pipeline.runtime.localizer import Localizer; "
+            f"loc = Localizer.from_bundle({str(bundle)!r}); "
+            f"loc.area_prior.probabilities({str(frame)!r}); "
+            "print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).resolve().parents[2])
+    assert out.stdout.strip().endswith("False")
+
+
+def test_export_refuses_area_seeding_without_a_prior(micro_bundle, tmp_path):
+    from pipeline.bundle.export import run_export
+    from pipeline.config import load_config
+    from pipeline.errors import ConfigError
+
+    _, ing, model, index, _ = micro_bundle
+    with pytest.raises(ConfigError, match="no --prior"):
+        run_export(load_config("ci", ["filter.seed_with=area_prior", "export.archive=false"]),
+                   inputs={"model": model, "index": index, "data": ing}, outputs={"out": tmp_path})
