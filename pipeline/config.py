@@ -302,6 +302,9 @@ class PriorConfig(Strict):
     n_components: int = Field(128, ge=2, description="compressed dimension (the paper: 128)")
     k: int = Field(10, ge=1, description="neighbours returned by the ball tree per layer (the paper: 10)")
     leaf_size: int = Field(40, ge=1, description="ball tree leaf size")
+    index: Literal["balltree", "brute"] = Field(
+        "balltree", description="exact k-NN by scikit-learn's BallTree (the paper's) or brute-force numpy (the same "
+        "neighbours; 2-3x faster at 128-d, benchmarks/prior_query.py)")
     # The defaults are the best of `prior evaluate` on the office site (docs/prior.md); the paper preset
     # keeps the paper's choice (Spearman, most weight on pool5).
     measure: Literal["spearman", "pearson", "euclidean", "gaussian"] = Field(

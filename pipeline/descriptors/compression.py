@@ -1,4 +1,4 @@
-"""Compression of CNN layer descriptors to a few dimensions (seed 002, Table I: memory, query time, accuracy).
+"""Compression of CNN layer descriptors to a few dimensions (seed 001, Table I: memory, query time, accuracy).
 
 The paper reduces each of three layers (AlexNet pool5 9216-d, fc6 / fc7 4096-d) to 128 dimensions with four
 scikit-learn transforms, compared here against the uncompressed descriptor:

@@ -36,7 +36,7 @@ def subset(meta: dict, idx) -> dict:
 
 def settings_of(cfg: SitelocConfig) -> PriorSettings:
     p = cfg.prior
-    return PriorSettings(p.k, p.leaf_size, p.measure, tuple(p.layer_weights), p.temperature)
+    return PriorSettings(p.k, p.leaf_size, p.measure, tuple(p.layer_weights), p.temperature, p.index)
 
 
 def build_prior(cfg: SitelocConfig, meta: dict, raw: dict, encoder: dict, compression: str | None = None) -> AreaPrior:
@@ -71,8 +71,9 @@ def weight_grid(prior: AreaPrior, raw_q: dict, meta_q: dict) -> dict:
     return out
 
 
-def table_one(cfg: SitelocConfig, meta_db, raw_db, meta_q, raw_q, encoder, *, timed: int = 100,
+def table_one(cfg: SitelocConfig, meta_db, raw_db, meta_q, raw_q, encoder, *, changed=None, timed: int = 100,
               progress: bool = True) -> list[dict]:
+    """One row per compression; `changed`: (meta, raw) of the changed site's queries, for their accuracy."""
     from pipeline.progress import progress_bar
 
     rows = []
@@ -93,6 +94,8 @@ def table_one(cfg: SitelocConfig, meta_db, raw_db, meta_q, raw_q, encoder, *, ti
         for q in range(n_t):
             prior.probabilities({n: raw_q[n][q:q + 1] for n in prior.layers})
         query_s = (time.perf_counter() - t0) / max(n_t, 1)
+        if changed is not None:
+            c_acc = accuracy(prior, prior.probabilities(changed[1]), truth(prior, changed[0]), changed[0]["room"])
         mem = prior.nbytes()
         rows.append({"compression": comp,
                      "dims": {n: int(prior.vectors[n].shape[1]) for n in prior.layers},
@@ -100,7 +103,9 @@ def table_one(cfg: SitelocConfig, meta_db, raw_db, meta_q, raw_q, encoder, *, ti
                      "memory_kb_by_layer": {n: round(v / 1024, 1) for n, v in mem.items()},
                      "query_ms": round(query_s * 1000, 3), "build_s": round(build_s, 2),
                      f"hit_at_{prior.settings.k}": round(float(hit), 4), "area_accuracy": acc["area"],
-                     "room_accuracy": acc["room"]})
+                     "room_accuracy": acc["room"],
+                     **({"changed_area_accuracy": c_acc["area"], "changed_room_accuracy": c_acc["room"]}
+                        if changed is not None else {})})
     return rows
 
 
@@ -109,7 +114,7 @@ def run_prior_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     from pipeline.errors import OutputExistsError
     from pipeline.io.atomic import atomic_dir, write_text_atomic
     from pipeline.prior.features import read_layers
-    from pipeline.prior.report import write_figures, write_report
+    from pipeline.prior.report import write_examples, write_figures, write_report
 
     out = Path(outputs["out"])
     if out.exists() and not force:
@@ -129,10 +134,7 @@ def run_prior_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
                         "classes": len(set(zip(meta_db["room"], meta_db["area"], strict=True))),
                         "rooms": len(set(meta_db["room"]))},
                "encoder": rep["encoder"], "settings": cfg.prior.model_dump(mode="json")}
-    metrics["table_one"] = table_one(cfg, meta_db, raw_db, meta_q, raw_q, rep["encoder"], progress=progress)
-    prior = build_prior(cfg, meta_db, raw_db, rep["encoder"])
-    metrics["layers"] = list(prior.layers)
-    metrics["weights"] = weight_grid(prior, raw_q, meta_q)
+    changed = None
     if inputs.get("changed"):
         meta_c, raw_c, rep_c = read_layers(Path(inputs["changed"]))
         if rep_c["encoder"]["backbone"] != rep["encoder"]["backbone"] or rep_c["dims"] != rep["dims"]:
@@ -142,6 +144,13 @@ def run_prior_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
                 str(inputs["changed"]), f"encoded with {rep_c['encoder']['backbone']} {rep_c['dims']}, the "
                 f"database with {rep['encoder']['backbone']} {rep['dims']}",
                 fix="run `siteloc prior features` on the changed site with the same config")])
+        changed = (meta_c, raw_c)
+    metrics["table_one"] = table_one(cfg, meta_db, raw_db, meta_q, raw_q, rep["encoder"], changed=changed,
+                                     progress=progress)
+    prior = build_prior(cfg, meta_db, raw_db, rep["encoder"])
+    metrics["layers"] = list(prior.layers)
+    metrics["weights"] = weight_grid(prior, raw_q, meta_q)
+    if changed is not None:
         metrics["changed"] = {"query_images": len(meta_c["image_id"]), "weights": weight_grid(prior, raw_c, meta_c)}
     if inputs.get("bundle") and inputs.get("data"):
         from pipeline.prior.seeding import compare_seeding
@@ -151,6 +160,9 @@ def run_prior_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     with atomic_dir(out, force=force) as tmp:
         write_text_atomic(tmp / "metrics.json", json.dumps(metrics, indent=2) + "\n")
         figures = write_figures(tmp, metrics)
+        if rep.get("data") and write_examples(tmp / "examples.png", prior, meta_q, prior.probabilities(raw_q),
+                                              Path(rep["data"])):
+            figures.append("examples.png")
         write_report(tmp / "report.md", metrics, figures)
         write_effective_config(cfg, tmp, stage="prior-evaluate", inputs=inputs)
     return out

@@ -94,7 +94,8 @@ def run_prior_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
                 metadata={"layer": name, "backbone": p.backbone, "weights": enc.source})
         splits = {s: cols["split"].count(s) for s in sorted(set(cols["split"]))}
         write_text_atomic(tmp / "report.json", json.dumps({
-            "images": len(ids), "splits": splits, "classes": len(set(zip(cols["room"], cols["area"], strict=True))),
-            "rooms": len(set(cols["room"])), "encoder": enc.describe(), "dims": dims}, indent=2) + "\n")
+            "data": str(data), "images": len(ids), "splits": splits,
+            "classes": len(set(zip(cols["room"], cols["area"], strict=True))), "rooms": len(set(cols["room"])),
+            "encoder": enc.describe(), "dims": dims}, indent=2) + "\n")
         write_effective_config(cfg, tmp, stage="prior-features", inputs=inputs)
     return out

@@ -57,6 +57,19 @@ def test_ball_tree_neighbours_are_the_brute_force_ones(site):
         np.testing.assert_allclose(found[n][0], np.sort(d, axis=1)[:, :5], rtol=1e-5)
 
 
+def test_brute_force_index_gives_the_trees_neighbours(site):
+    meta, raw, _, qraw, _ = site
+    tree = build(meta, raw)
+    brute = build(meta, raw)
+    brute.settings.index = "brute"
+    comp = tree.compress(qraw)
+    a, b = tree.neighbours(comp), brute.neighbours(comp)
+    for n in LAYERS:
+        np.testing.assert_array_equal(a[n][1], b[n][1])
+        np.testing.assert_allclose(a[n][0], b[n][0], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(tree.probabilities(qraw), brute.probabilities(qraw), atol=1e-9)
+
+
 @pytest.mark.parametrize("measure", MEASURES)
 def test_separable_classes_are_found_and_probabilities_sum_to_one(site, measure):
     meta, raw, qmeta, qraw, _ = site
