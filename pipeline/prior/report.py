@@ -106,6 +106,7 @@ def write_examples(path: Path, prior, meta_q: dict, probs: np.ndarray, data: Pat
         a_bar.set_yticks(range(len(order)), ["/".join(prior.classes[k]) for k in order], fontsize=7)
         a_bar.set_xlim(0, 1)
         a_bar.tick_params(axis="x", labelsize=7)
+    fig.subplots_adjust(wspace=0.7)
     fig.suptitle("held-out queries and their most probable (room, area) classes (green: right)", fontsize=10)
     save_figure(fig, path)
     return True
