@@ -178,6 +178,10 @@ class FilterConfig(Strict):
         "candidates", description="how the first camera image starts the filter: around its Top-4 retrieved "
         "poses (seed 000), or over the free space of its most probable (room, area) classes (seed 001's prior; "
         "needs a bundle exported with --prior)")
+    inject_areas: bool = Field(
+        False, description="when the filter is declared lost, also inject inject_particles particles over the "
+        "free space of the current image's most probable (room, area) classes (seed 001's prior; needs a bundle "
+        "exported with --prior)")
     relocalise_with: Literal["auto", "image", "sequence", "both"] = Field(
         "auto", description="what injects particles after the filter is lost: the current image's Top-4 at the "
         "step it is declared lost (image); the Top-4 of the last sequence.length frames once that many are seen, "

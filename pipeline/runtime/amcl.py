@@ -120,7 +120,17 @@ class AdaptiveMCL:
         n = min(n if n is not None else self.cfg.inject_particles, self.cfg.max_particles)
         if n <= 0:
             return 0
-        new = self._around(poses, weights, n, std_theta)
+        return self._add_particles(self._around(poses, weights, n, std_theta))
+
+    def inject_regions(self, cell_region: np.ndarray, weights, n: int | None = None) -> int:
+        """Add n particles spread over labelled parts of the free space (an area prior), as `inject` does."""
+        n = min(n if n is not None else self.cfg.inject_particles, self.cfg.max_particles)
+        if n <= 0:
+            return 0
+        return self._add_particles(self.map.sample_regions(cell_region, weights, n, self.rng))
+
+    def _add_particles(self, new: np.ndarray) -> int:
+        n = len(new)
         room = self.cfg.max_particles - n
         if len(self.particles) > room:
             keep = np.argsort(-self.log_w, kind="stable")[:room]

@@ -87,6 +87,9 @@ class Localizer:
         if fcfg.seed_with == "area_prior" and self.area_prior is None:
             raise BundleError(f"{root}: filter.seed_with is 'area_prior' but the bundle has no area prior; export "
                               f"it with --prior or set filter.seed_with=candidates")
+        if fcfg.inject_areas and self.area_prior is None:
+            raise BundleError(f"{root}: filter.inject_areas is set but the bundle has no area prior; export it with "
+                              f"--prior or set filter.inject_areas=false")
         if fcfg.relocalise_with in ("sequence", "both") and self.sequence is None:
             raise BundleError(f"{root}: filter.relocalise_with is '{fcfg.relocalise_with}' but the bundle has no "
                               f"sequence model; export it with --sequence or set filter.relocalise_with=image")
@@ -180,6 +183,7 @@ class Localizer:
             # the frames seen while the kidnap rule was counting were taken where the robot is now.
             self.sequence.keep_last(self.filter_config.kidnap.updates)
             self.awaiting_sequence = True
+        lost_before = self._was_lost
         self._was_lost = self.started and state == FilterState.LOST
         if use_sequence and image is not None:
             self.sequence.push(image)
@@ -217,6 +221,12 @@ class Localizer:
                 self.filter.inject(cands[:, :3], cands[:, 3],
                                    std_theta=None if spread is None else np.radians(spread))
                 self.seeded_by_retrieval = True
+            if (self.filter_config.inject_areas and image is not None and state == FilterState.LOST
+                    and not lost_before):
+                # Seed 001's prior names areas where the pose candidates may all be wrong twins.
+                self.filter.inject_regions(self.area_prior.cells,
+                                           self.area_prior.weights(self.area_prior.probabilities(image)))
+                source = "image+area_prior" if source == "image" else (source or "area_prior")
         res = self.filter.update(odometry, scan)
         return Estimate(res.pose, res.covariance, res.state.value, res.particles, res.updated, cands, source,
                         res.best_likelihood)

@@ -194,3 +194,13 @@ def test_area_cells_are_the_nearest_stop_within_the_radius():
     want = np.where(d0 <= d1, 0, 1)
     want[np.minimum(d0, d1) > 1.0] = -1
     np.testing.assert_array_equal(cells, want)
+
+
+def test_memory_is_the_compression_plus_the_database(site):
+    meta, raw, _, _, _ = site
+    for comp in ("srp", "kpca", "none"):
+        prior = build(meta, raw, compression=comp)
+        for n in LAYERS:
+            want = prior.compressors[n].nbytes() + prior.vectors[n].size * 4
+            assert prior.nbytes()[n] == want
+    assert build(meta, raw, compression="none").nbytes()["low"] == len(meta["image_id"]) * LAYERS["low"] * 4

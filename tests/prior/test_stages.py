@@ -94,8 +94,9 @@ def _write_subset(src: Path, dst: Path, keep: list[bool]):
 
 def test_evaluate_writes_table_one_and_the_seeding_comparison(prior_dirs):
     ing, bundle, root = prior_dirs
+    # the site's own features stand in for a changed site's: the path is exercised, the figures are checked
     out = cli("prior", "evaluate", str(root / "f"), "--bundle", str(bundle), "--data", str(ing), "--out",
-              str(root / "r"))
+              str(root / "r"), "--changed", str(root / "f"))
     assert "Table I" in out
     m = json.loads((root / "r" / "metrics.json").read_text())
     assert [r["compression"] for r in m["table_one"]] == ["ipca", "kpca", "srp", "grp", "none"]
@@ -103,10 +104,15 @@ def test_evaluate_writes_table_one_and_the_seeding_comparison(prior_dirs):
         assert 0 <= r["area_accuracy"] <= 1 and r["memory_kb_mean_layer"] > 0 and r["query_ms"] > 0
     assert {r["compression"]: r["dims"]["pool"] for r in m["table_one"]}["none"] == 2880
     assert set(m["weights"]) == {"spearman", "pearson", "euclidean", "gaussian"}
+    n_images = sum(json.loads((root / "f" / "report.json").read_text())["splits"].values())
+    assert m["changed"]["query_images"] == n_images
+    assert set(m["changed"]["weights"]) == set(m["weights"])
+    for r in m["table_one"]:
+        assert 0 <= r["changed_area_accuracy"] <= 1 and 0 <= r["changed_room_accuracy"] <= 1
     sd = m["seeding"]
     assert set(sd["summary"]) == {"area_prior", "candidates", "uniform"}
     assert all(s["replays"] == len(sd["starts"]) > 0 for s in sd["summary"].values())
-    for f in ("report.md", "table_one.png", "layer_weights.png", "seeding.png", "config.yaml"):
+    for f in ("report.md", "table_one.png", "layer_weights.png", "seeding.png", "examples.png", "config.yaml"):
         assert (root / "r" / f).is_file()
 
 
@@ -117,17 +123,25 @@ def test_evaluate_refuses_half_a_seeding_request(prior_dirs):
     assert result.exit_code == 1 and "--bundle and --data go together" in result.output
 
 
-def test_bundle_with_a_prior_seeds_the_filter_over_areas_without_torch(prior_dirs, micro_bundle, tmp_path):
+@pytest.fixture(scope="module")
+def prior_bundle(prior_dirs, micro_bundle, tmp_path_factory):
     from pipeline.bundle.export import run_export
     from pipeline.config import load_config
+
+    cfg_sets = [*SETS, "filter.seed_with=area_prior", "filter.inject_areas=true", "export.archive=false"]
+    _, ing, model, index, _ = micro_bundle
+    _, _, root = prior_dirs
+    return run_export(load_config("ci", cfg_sets), inputs={"model": model, "index": index, "data": ing,
+                                                           "prior": root / "p"},
+                      outputs={"out": tmp_path_factory.mktemp("pb")})
+
+
+def test_bundle_with_a_prior_seeds_the_filter_over_areas_without_torch(prior_dirs, prior_bundle):
     from pipeline.prior.model import AreaPrior
     from pipeline.runtime.localizer import Localizer
 
-    cfg_sets = [*SETS, "filter.seed_with=area_prior", "export.archive=false"]
-    _, ing, model, index, _ = micro_bundle
-    _, _, root = prior_dirs
-    bundle = run_export(load_config("ci", cfg_sets), inputs={"model": model, "index": index, "data": ing,
-                                                             "prior": root / "p"}, outputs={"out": tmp_path})
+    ing, _, root = prior_dirs
+    bundle = prior_bundle
     meta = json.loads((bundle / "models" / "prior.json").read_text())
     assert max(meta["parity"]["max_abs_by_layer"].values()) <= meta["parity"]["tolerance"]
     manifest = json.loads((bundle / "manifest.json").read_text())
@@ -171,3 +185,59 @@ def test_export_refuses_area_seeding_without_a_prior(micro_bundle, tmp_path):
     with pytest.raises(ConfigError, match="no --prior"):
         run_export(load_config("ci", ["filter.seed_with=area_prior", "export.archive=false"]),
                    inputs={"model": model, "index": index, "data": ing}, outputs={"out": tmp_path})
+
+
+class StubFilter:
+    """Scripted states; records what the Localizer injects."""
+
+    def __init__(self, states):
+        from pipeline.runtime.amcl import FilterState
+
+        self.script, self.step = [FilterState(x) for x in states], 0
+        self.state = FilterState.TRACKING
+        self.poses, self.regions = [], []
+        self.particles = np.zeros((10, 3))
+
+    def inject(self, poses, weights, std_theta=None):
+        self.poses.append(self.step)
+
+    def inject_regions(self, cells, weights, n=None):
+        self.regions.append((self.step, np.asarray(weights)))
+
+    def update(self, odometry, scan):
+        from types import SimpleNamespace
+
+        self.state = self.script[self.step]
+        self.step += 1
+        return SimpleNamespace(pose=np.zeros(3), covariance=np.eye(3), state=self.state, particles=10, updated=True,
+                               best_likelihood=1.0)
+
+
+def test_areas_are_injected_once_when_the_filter_is_declared_lost(prior_dirs, prior_bundle):
+    from pipeline.runtime.localizer import Localizer
+
+    ing, _, _ = prior_dirs
+    loc = Localizer.from_bundle(prior_bundle)
+    frame = ing / loc.area_prior.prior.rows["image_id"][0]
+    states = ["tracking"] * 3 + ["lost", "lost"] + ["relocalising"] * 2 + ["tracking"] * 2 + ["lost"] + ["tracking"]
+    loc.filter, loc.started, loc.seeded_by_retrieval = StubFilter(states), True, True
+    sources = [loc.update(np.zeros(3), None, image=frame).source for _ in states]
+    lost = [i + 1 for i, st in enumerate(states) if st == "lost" and (i == 0 or states[i - 1] != "lost")]
+    assert [s for s, _ in loc.filter.regions] == lost  # the first update that sees each loss, once
+    assert all(sources[i] == "image+area_prior" for i in lost)
+    for _, w in loc.filter.regions:
+        assert np.count_nonzero(w) <= loc.area_prior.max_areas and w.sum() > 0
+
+
+def test_area_options_need_a_prior_in_the_bundle(micro_bundle, tmp_path):
+    import yaml
+
+    from pipeline.runtime.bundle import BundleError
+    from pipeline.runtime.localizer import Localizer
+
+    bundle = micro_bundle[4]
+    settings = yaml.safe_load((bundle / "filter.yaml").read_text())
+    for key in ("seed_with", "inject_areas"):
+        s = {**settings, "filter": {**settings["filter"], key: "area_prior" if key == "seed_with" else True}}
+        with pytest.raises(BundleError, match=f"filter.{key}"):
+            Localizer(bundle, {}, s)

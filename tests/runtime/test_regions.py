@@ -57,3 +57,18 @@ def test_filter_starts_over_the_regions():
     _, col = lmap.cells(f.particles[:, 0], f.particles[:, 1])
     assert np.all((col >= 20) & (col < 40))
     np.testing.assert_allclose(f.weights.sum(), 1.0)
+
+
+def test_injecting_regions_adds_particles_there_and_keeps_weights_normalised():
+    from pipeline.config import FilterConfig
+    from pipeline.runtime.amcl import AdaptiveMCL, FilterState
+
+    lmap = _map()
+    f = AdaptiveMCL(lmap, FilterConfig(max_particles=600, inject_particles=200, seed=4), range_max=10.0)
+    f.init_regions(_regions(lmap), [1.0, 0.0])
+    f.state = FilterState.LOST
+    assert f.inject_regions(_regions(lmap), [0.0, 1.0]) == 200
+    assert len(f.particles) == 600 and f.state == FilterState.RELOCALISING
+    _, col = lmap.cells(f.particles[:, 0], f.particles[:, 1])
+    assert np.sum((col >= 20) & (col < 40)) == 200  # the new ones, in region 1; 200 old ones made room
+    np.testing.assert_allclose(f.weights.sum(), 1.0)
