@@ -59,10 +59,13 @@ def _torchvision(backbone: str, weights):
         try:
             return build(weights=enum.IMAGENET1K_V1), f"imagenet: torchvision {enum.IMAGENET1K_V1.url}"
         except Exception as exc:  # no cache and no network
-            raise FileNotFoundError(
-                f"torchvision's {backbone} ImageNet weights are not cached and cannot be downloaded ({exc}); put "
-                f"{Path(enum.IMAGENET1K_V1.url).name} in {torch.hub.get_dir()}/checkpoints, pass a weights file, "
-                f"or use the offline backbone efficientnet_lite0") from None
+            from pipeline.errors import InputError, Problem
+
+            raise InputError(f"torchvision's {backbone} ImageNet weights are not available", [Problem(
+                f"{torch.hub.get_dir()}/checkpoints/{Path(enum.IMAGENET1K_V1.url).name}",
+                f"not cached and cannot be downloaded ({type(exc).__name__})",
+                fix="copy the file there, set prior.weights to a state-dict file, or use the offline backbone "
+                    "(prior.backbone=efficientnet_lite0)")]) from None
     net = build(weights=None)
     if weights is None:
         return net, "none (random init)"
@@ -77,6 +80,11 @@ def build_multilayer(backbone: str, weights: str | Path | None = "imagenet"):
     later query all use the same network."""
     import torch
 
+    if weights not in (None, "imagenet") and not Path(weights).is_file():
+        from pipeline.errors import InputError, Problem
+
+        raise InputError(f"{weights}: weights file not found", [Problem(
+            str(weights), "no such file", fix="set prior.weights to imagenet, null or an existing state-dict file")])
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(0)
         return _build_multilayer(backbone, weights)

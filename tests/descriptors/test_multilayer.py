@@ -62,3 +62,10 @@ def test_weights_from_a_file_load_strictly(tmp_path):
 def test_unknown_backbone_is_named():
     with pytest.raises(ValueError, match="one of alexnet, vgg16, efficientnet_lite0"):
         layer_names("resnet50")
+
+
+def test_missing_weights_are_a_clear_error(tmp_path):
+    from pipeline.errors import InputError
+
+    with pytest.raises(InputError, match="weights file not found"):
+        build_multilayer("efficientnet_lite0", tmp_path / "nope.pth")

@@ -241,3 +241,16 @@ def test_area_options_need_a_prior_in_the_bundle(micro_bundle, tmp_path):
         s = {**settings, "filter": {**settings["filter"], key: "area_prior" if key == "seed_with" else True}}
         with pytest.raises(BundleError, match=f"filter.{key}"):
             Localizer(bundle, {}, s)
+
+
+def test_build_is_byte_identical_when_rerun(prior_dirs, tmp_path):
+    import hashlib
+
+    _, _, root = prior_dirs
+    cli("prior", "build", str(root / "f"), "--out", str(tmp_path / "again"), "--set", "prior.compression=kpca")
+    cli("prior", "build", str(root / "f"), "--out", str(tmp_path / "twice"), "--set", "prior.compression=kpca")
+
+    def digest(d):
+        return {f.name: hashlib.sha256(f.read_bytes()).hexdigest() for f in d.iterdir()}
+
+    assert digest(tmp_path / "again") == digest(tmp_path / "twice")
