@@ -14,7 +14,6 @@ sizes 1e3-1e6 (`--max-n`). Medians of `--repeat` runs.
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -24,16 +23,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from pipeline.machine import machine_info  # noqa: E402
-
-
-def median_ms(fn, repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - t0) * 1000.0)
-    return statistics.median(times)
+from pipeline.machine import machine_info, median_ms  # noqa: E402
 
 
 def bundle_costs(bundle: Path, data: Path, repeat: int) -> None:

@@ -36,3 +36,16 @@ def machine_info() -> list[str]:
 def machine_summary() -> str:
     """One line: CPU, usable cores, OS."""
     return f"{cpu_model()}, {usable_cores()} usable cores, {platform.system()}"
+
+
+def median_ms(fn, repeat: int) -> float:
+    """Median wall time of `repeat` calls of `fn`, in milliseconds (benchmarks' per-call figures)."""
+    import statistics
+    import time
+
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - t0) * 1000.0)
+    return statistics.median(times)

@@ -8,26 +8,11 @@ site images and refuses (nothing written) a graph that differs by more than `tol
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.errors import SitelocError
-
-
-def square_resampling(image_hw: tuple[int, int], size: int):
-    """(ry (size, H), rx (size, W)) with `ry @ image @ rx.T` the antialiased bilinear resize to size x size."""
-    import torch
-    import torch.nn.functional as F
-
-    H, W = image_hw
-    with torch.no_grad():
-        rx = F.interpolate(torch.eye(W)[None, None], size=(W, size), mode="bilinear", align_corners=False,
-                           antialias=True)[0, 0].T.contiguous()
-        ry = F.interpolate(torch.eye(H)[None, None], size=(size, H), mode="bilinear", align_corners=False,
-                           antialias=True)[0, 0].contiguous()
-    return ry, rx
 
 
 def export_prior_encoder(encoder, image_hw: tuple[int, int], path: Path, images: list, *,
@@ -36,32 +21,22 @@ def export_prior_encoder(encoder, image_hw: tuple[int, int], path: Path, images:
     import torch
     from torch import nn
 
-    from pipeline.io.atomic import atomic_file
+    from pipeline.sequence.onnx_export import export_image_graph, image_graph, resize_matrices
 
-    ry, rx = square_resampling(image_hw, encoder.input_size)
-
-    class Encode(nn.Module):
-        def __init__(self):
+    class Normalised(nn.Module):  # the encoder's l2 normalisation of each layer, inside the graph
+        def __init__(self, model):
             super().__init__()
-            self.model = encoder.model.cpu().eval()
-            self.register_buffer("ry", ry)
-            self.register_buffer("rx", rx)
-            self.register_buffer("mean", encoder.mean.cpu())
-            self.register_buffer("std", encoder.std.cpu())
+            self.model = model
 
-        def forward(self, image):
-            x = torch.matmul(self.ry, torch.matmul(image, self.rx.T))[None]
-            outs = self.model((x - self.mean) / self.std)
-            if encoder.normalize:
-                outs = tuple(o / torch.clamp(torch.linalg.vector_norm(o, dim=1, keepdim=True), min=1e-12)
-                             for o in outs)
-            return tuple(o[0] for o in outs)
+        def forward(self, x):
+            outs = self.model(x)
+            if not encoder.normalize:
+                return outs
+            return tuple(o / torch.clamp(torch.linalg.vector_norm(o, dim=1, keepdim=True), min=1e-12) for o in outs)
 
-    graph = Encode().eval()
-    with atomic_file(path, "wb") as fh, warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        torch.onnx.export(graph, (torch.zeros(3, *image_hw),), fh, opset_version=17, dynamo=False,
-                          input_names=["image"], output_names=list(encoder.layers))
+    ry, rx = resize_matrices(image_hw, (encoder.input_size, encoder.input_size))
+    graph = image_graph(Normalised(encoder.model.cpu().eval()), ry, rx, encoder.mean, encoder.std)
+    export_image_graph(graph, image_hw, path, list(encoder.layers))
     import onnxruntime as ort
 
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])

@@ -70,16 +70,14 @@ def export_sequence_onnx(model, path: Path, *, in_dim: int, lengths=(1, 2, 6, 10
     return {"max_abs_by_length": {str(k): v for k, v in worst.items()}, "tolerance": tolerance}
 
 
-def resampling_matrices(image_hw: tuple[int, int], size: int):
-    """(ry (h, H), rx (w, W)) with `ry @ image @ rx.T` equal to the antialiased bilinear resize of
-    `FrameEncoder.prepare`: torch's resize is separable, so each matrix is its response to unit impulses.
-    (ONNX has no antialiased resize; two constant MatMuls reproduce it exactly.)"""
+def resize_matrices(image_hw: tuple[int, int], out_hw: tuple[int, int]):
+    """(ry (h, H), rx (w, W)) with `ry @ image @ rx.T` equal to torch's antialiased bilinear resize to
+    `out_hw`: the resize is separable, so each matrix is its response to unit impulses. (ONNX has no
+    antialiased resize; two constant MatMuls reproduce it exactly.)"""
     import torch
     import torch.nn.functional as F
 
-    H, W = image_hw
-    s = size / min(H, W)
-    h, w = max(1, round(H * s)), max(1, round(W * s))
+    (H, W), (h, w) = image_hw, out_hw
     with torch.no_grad():
         rx = F.interpolate(torch.eye(W)[None, None], size=(W, w), mode="bilinear", align_corners=False,
                            antialias=True)[0, 0].T.contiguous()
@@ -88,35 +86,56 @@ def resampling_matrices(image_hw: tuple[int, int], size: int):
     return ry, rx
 
 
+def resampling_matrices(image_hw: tuple[int, int], size: int):
+    """`resize_matrices` for `FrameEncoder.prepare`'s resize: the shorter side to `size`, aspect kept."""
+    H, W = image_hw
+    s = size / min(H, W)
+    return resize_matrices(image_hw, (max(1, round(H * s)), max(1, round(W * s))))
+
+
+def image_graph(body, ry, rx, mean, std):
+    """A module: camera image (3, H, W) in [0, 1] -> resized (matrices), normalised, a batch of one ->
+    `body` (an nn.Module) -> its output(s) without the batch axis."""
+    import torch
+    from torch import nn
+
+    class ImageGraph(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.body = body
+            self.register_buffer("ry", ry)
+            self.register_buffer("rx", rx)
+            self.register_buffer("mean", mean.cpu())
+            self.register_buffer("std", std.cpu())
+
+        def forward(self, image):
+            x = torch.matmul(self.ry, torch.matmul(image, self.rx.T))[None]
+            out = self.body((x - self.mean) / self.std)
+            return tuple(o[0] for o in out) if isinstance(out, tuple) else out[0]
+
+    return ImageGraph().eval()
+
+
+def export_image_graph(graph, image_hw: tuple[int, int], path: Path, output_names: list[str]) -> None:
+    """`graph` traced at the camera's size to ONNX at `path` (atomically)."""
+    import torch
+
+    from pipeline.io.atomic import atomic_file
+
+    # The tracer's warnings (shapes taken as constants) are about what the parity checks measure.
+    with atomic_file(path, "wb") as fh, warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(graph, (torch.zeros(3, *image_hw),), fh, opset_version=17, dynamo=False,
+                          input_names=["image"], output_names=output_names)
+
+
 def export_frame_encoder(encoder, image_hw: tuple[int, int], path: Path, images: list, *,
                          tolerance: float = 5e-3) -> dict:
     """The frame encoder (camera image (3, H, W) in [0, 1] -> 1000 logits) as ONNX for the runtime, checked
     on `images` against `encoder` itself; refused (nothing written) beyond `tolerance` (absolute, logits)."""
-    import torch
-    from torch import nn
-
-    from pipeline.io.atomic import atomic_file
-
     ry, rx = resampling_matrices(image_hw, encoder.size)
-
-    class Encode(nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.model = encoder.model.cpu().eval()
-            self.register_buffer("ry", ry)
-            self.register_buffer("rx", rx)
-            self.register_buffer("mean", encoder.mean.cpu())
-            self.register_buffer("std", encoder.std.cpu())
-
-        def forward(self, image):
-            x = torch.matmul(self.ry, torch.matmul(image, self.rx.T))[None]
-            return self.model((x - self.mean) / self.std)[0]
-
-    graph = Encode().eval()
-    with atomic_file(path, "wb") as fh, warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        torch.onnx.export(graph, (torch.zeros(3, *image_hw),), fh, opset_version=17, dynamo=False,
-                          input_names=["image"], output_names=["logits"])
+    graph = image_graph(encoder.model.cpu().eval(), ry, rx, encoder.mean, encoder.std)
+    export_image_graph(graph, image_hw, path, ["logits"])
     import onnxruntime as ort
 
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])

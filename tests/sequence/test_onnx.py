@@ -51,6 +51,18 @@ def test_resampling_matrices_are_the_antialiased_resize():
     np.testing.assert_allclose(ry.sum(1).numpy(), 1.0, atol=1e-5)  # each output pixel a weighted mean
 
 
+def test_square_resize_matrices_are_the_multilayer_encoders_resize():
+    import torch
+
+    from pipeline.descriptors.multilayer import MultiLayerEncoder
+    from pipeline.sequence.onnx_export import resize_matrices
+
+    image = torch.rand(3, 61, 83, generator=torch.Generator().manual_seed(1))
+    ry, rx = resize_matrices((61, 83), (32, 32))
+    want = MultiLayerEncoder("efficientnet_lite0", None, 32).prepare(image)
+    torch.testing.assert_close(ry @ image @ rx.T, want, atol=1e-5, rtol=0)
+
+
 def test_frame_encoder_onnx_matches_the_encoder_and_refuses_beyond_the_tolerance(tmp_path):
     import onnxruntime as ort
     import torch
