@@ -208,11 +208,12 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
             export_sequence(cfg, Path(inputs["sequence"]), tmp, images)
         if inputs.get("prior") is not None:
             export_prior(cfg, prior, Path(inputs["prior"]), tmp, images)
-        elif cfg.filter.seed_with == "area_prior":
+        elif cfg.filter.seed_with == "area_prior" or cfg.filter.inject_areas:
             from pipeline.errors import ConfigError
 
-            raise ConfigError("filter.seed_with is area_prior but no --prior was given: export with "
-                              "--prior models/prior, or set filter.seed_with=candidates")
+            raise ConfigError("filter.seed_with=area_prior and filter.inject_areas need the area prior, but no "
+                              "--prior was given: export with --prior models/prior, or set "
+                              "filter.seed_with=candidates and filter.inject_areas=false")
         settings = {"filter": cfg.filter.model_dump(mode="json"),
                     "retrieval": {"top_n": r.top_n, "rerank": r.rerank, "query_regions": r.query_regions,
                                   "candidate_weights": list(r.candidate_weights)},

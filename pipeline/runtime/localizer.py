@@ -16,6 +16,9 @@ when the filter is declared lost the buffer keeps only the frames since the kidn
 and once it holds `length` frames their sequence's Top-4 are injected at every step until the filter
 tracks again (seed 000 section 3.3), headings spread by `filter.sequence_heading_std_deg`; `both` also
 injects the single image's Top-4 at the step the filter declares itself lost, `sequence` does not.
+A bundle exported with an area prior (`--prior`, seed 001; `pipeline.runtime.areaprior`) can instead
+start the filter over the free space of the first image's most probable (room, area) classes
+(`filter.seed_with: area_prior`), and with `filter.inject_areas` also inject over them once when lost.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ class Estimate:
     n_particles: int
     updated: bool  # False when the filter held the update back (not enough travel)
     candidates: np.ndarray | None  # (K, 4) x, y, theta, weight when retrieval ran this step
-    source: str | None  # what gave the candidates: "image", "sequence" or "area_prior" (None when none ran)
+    source: str | None  # what seeded or injected: image, sequence, area_prior, image+area_prior (None: nothing)
     best_likelihood: float  # per-beam relative likelihood of the best particle, (0, 1]
 
 
@@ -81,9 +84,11 @@ class Localizer:
 
         self.area_prior = None
         if has_prior(root):
-            ps = settings.get("prior") or {}
-            self.area_prior = AreaPriorSeeder(root, self.map, area_radius_m=ps.get("area_radius_m", 2.0),
-                                              max_areas=ps.get("max_areas", 3), threads=describer_threads)
+            from pipeline.config import PriorConfig
+
+            ps = {**PriorConfig().model_dump(), **(settings.get("prior") or {})}
+            self.area_prior = AreaPriorSeeder(root, self.map, area_radius_m=ps["area_radius_m"],
+                                              max_areas=ps["max_areas"], threads=describer_threads)
         if fcfg.seed_with == "area_prior" and self.area_prior is None:
             raise BundleError(f"{root}: filter.seed_with is 'area_prior' but the bundle has no area prior; export "
                               f"it with --prior or set filter.seed_with=candidates")

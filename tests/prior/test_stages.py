@@ -183,6 +183,9 @@ def test_export_refuses_area_seeding_without_a_prior(micro_bundle, tmp_path):
 
     _, ing, model, index, _ = micro_bundle
     with pytest.raises(ConfigError, match="no --prior"):
+        run_export(load_config("ci", ["filter.inject_areas=true", "export.archive=false"]),
+                   inputs={"model": model, "index": index, "data": ing}, outputs={"out": tmp_path})
+    with pytest.raises(ConfigError, match="no --prior"):
         run_export(load_config("ci", ["filter.seed_with=area_prior", "export.archive=false"]),
                    inputs={"model": model, "index": index, "data": ing}, outputs={"out": tmp_path})
 
