@@ -109,6 +109,47 @@ def table_one(cfg: SitelocConfig, meta_db, raw_db, meta_q, raw_q, encoder, *, ch
     return rows
 
 
+def append_study(cfg: SitelocConfig, meta_db, raw_db, meta_q, raw_q, encoder, *, every: int = 5) -> dict:
+    """The paper's scalability claim, measured: a prior built without every `every`-th room, then those
+    rooms' database images appended. Compared with building on everything at once: the time, the held-out
+    rooms' queries before and after, and how many of the other queries keep their answer."""
+    rooms = sorted(set(meta_db["room"]))
+    late = set(rooms[::every])
+    first = np.array([r not in late for r in meta_db["room"]])
+    t0 = time.perf_counter()
+    prior = build_prior(cfg, subset(meta_db, np.flatnonzero(first)), {n: v[first] for n, v in raw_db.items()},
+                        encoder)
+    build_s = time.perf_counter() - t0
+    q_late = np.array([r in late for r in meta_q["room"]])
+    before = prior.probabilities(raw_q)
+    pred_before = [prior.classes[k] for k in before.argmax(axis=1)]
+    t0 = time.perf_counter()
+    prior.append(subset(meta_db, np.flatnonzero(~first)), {n: v[~first] for n, v in raw_db.items()})
+    append_s = time.perf_counter() - t0
+    after = prior.probabilities(raw_q)
+    pred_after = [prior.classes[k] for k in after.argmax(axis=1)]
+    truth_q = list(zip(meta_q["room"], meta_q["area"], strict=True))
+    t0 = time.perf_counter()
+    full = build_prior(cfg, meta_db, raw_db, encoder)
+    full_s = time.perf_counter() - t0
+    pred_full = [full.classes[k] for k in full.probabilities(raw_q).argmax(axis=1)]
+
+    def acc(pred, sel):
+        idx = np.flatnonzero(sel)
+        return round(float(np.mean([pred[i] == truth_q[i] for i in idx])), 4) if len(idx) else None
+
+    old = ~q_late
+    return {"rooms_appended": len(late), "images_appended": int((~first).sum()), "images_first": int(first.sum()),
+            "build_first_s": round(build_s, 3), "append_s": round(append_s, 3), "build_all_s": round(full_s, 3),
+            "late_queries": int(q_late.sum()), "late_area_accuracy_before": acc(pred_before, q_late),
+            "late_area_accuracy_after": acc(pred_after, q_late), "late_area_accuracy_built_at_once":
+                acc(pred_full, q_late),
+            "other_queries": int(old.sum()), "other_area_accuracy_before": acc(pred_before, old),
+            "other_area_accuracy_after": acc(pred_after, old),
+            "other_unchanged_share": round(float(np.mean([a == b for a, b, o in zip(pred_before, pred_after, old,
+                                                                                      strict=True) if o])), 4)}
+
+
 def run_prior_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
                        force: bool = False, progress: bool = True) -> Path:
     from pipeline.errors import OutputExistsError
@@ -152,6 +193,7 @@ def run_prior_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     metrics["weights"] = weight_grid(prior, raw_q, meta_q)
     if changed is not None:
         metrics["changed"] = {"query_images": len(meta_c["image_id"]), "weights": weight_grid(prior, raw_c, meta_c)}
+    metrics["append"] = append_study(cfg, meta_db, raw_db, meta_q, raw_q, rep["encoder"])
     if inputs.get("bundle") and inputs.get("data"):
         from pipeline.prior.seeding import compare_seeding
 

@@ -157,6 +157,19 @@ def write_report(path: Path, metrics: dict, figures: list[str]) -> Path:
     lines += ["", "![](layer_weights.png)", ""]
     if "examples.png" in figures:
         lines += ["![](examples.png)", ""]
+    if "append" in metrics:
+        a = metrics["append"]
+        lines += ["## Appending new areas", "",
+                  f"A prior built without {a['rooms_appended']} of the rooms ({a['images_first']} images, "
+                  f"{a['build_first_s']:.2f} s), then their {a['images_appended']} images appended "
+                  f"({a['append_s']:.2f} s; building on everything at once: {a['build_all_s']:.2f} s):", "",
+                  "| queries | area accuracy before | after appending | built at once |", "|---|---|---|---|",
+                  f"| of the appended rooms ({a['late_queries']}) | {a['late_area_accuracy_before']} | "
+                  f"{a['late_area_accuracy_after']} | {a['late_area_accuracy_built_at_once']} |",
+                  f"| of the other rooms ({a['other_queries']}) | {a['other_area_accuracy_before']} | "
+                  f"{a['other_area_accuracy_after']} | - |", "",
+                  f"{a['other_unchanged_share']:.0%} of the other rooms' queries keep their answer (the others now "
+                  "have an appended image among their neighbours).", ""]
     if "seeding" in metrics:
         sd = metrics["seeding"]
         lines += ["## Seeding the filter: area prior vs Top-4 candidates vs uniform", "",

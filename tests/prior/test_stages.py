@@ -109,6 +109,10 @@ def test_evaluate_writes_table_one_and_the_seeding_comparison(prior_dirs):
     assert set(m["changed"]["weights"]) == set(m["weights"])
     for r in m["table_one"]:
         assert 0 <= r["changed_area_accuracy"] <= 1 and 0 <= r["changed_room_accuracy"] <= 1
+    a = m["append"]
+    assert a["late_area_accuracy_before"] in (0.0, None)  # their classes are not in the first prior
+    assert a["images_first"] + a["images_appended"] == m["site"]["database_images"]
+    assert 0 <= a["other_unchanged_share"] <= 1
     sd = m["seeding"]
     assert set(sd["summary"]) == {"area_prior", "candidates", "uniform"}
     assert all(s["replays"] == len(sd["starts"]) > 0 for s in sd["summary"].values())
