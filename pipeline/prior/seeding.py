@@ -117,8 +117,8 @@ def compare_seeding(cfg, prior, bundle, data, *, progress: bool = True) -> dict:
             "true_area": list(prior.classes[true_class]) if true_class >= 0 else None,
             "top_areas": [[*prior.classes[k], round(float(probs[k]), 4)] for k in top],
             "prior_hit": true_class in top, "prior_top1": bool(top) and top[0] == true_class,
-            "retrieval_top1": retrieved == true_class >= 0,
-            "candidate_error_m": round(float(np.min(np.hypot(*(cands[:, :2] - run.gt[first, :2]).T))), 3)})
+            "retrieval_top1": true_class >= 0 and retrieved == true_class,
+            "nearest_candidate_m": round(float(np.min(np.hypot(*(cands[:, :2] - run.gt[first, :2]).T))), 3)})
         scans = [Scan(r, run.angle_min, run.angle_increment, run.range_max) for r in run.ranges[first:end]]
         for trial in range(ev.trials):
             for seeding in SEEDINGS:
