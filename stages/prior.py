@@ -57,8 +57,10 @@ EVALUATE_HELP = """Reproduce seed 001's experiments on a site: Table I, layer we
 FEATURES is a `siteloc prior features` output: database = its train split, queries = the held-out stops.
 --changed adds queries from the site after `synth --change` (its own features). --bundle with --data (the
 ingested site with query runs) compares seeding the filter from the area prior, from the Top-4 retrieved
-poses and uniformly, in steps to converge on the same runs. Writes metrics.json, report.md,
-table_one.png, layer_weights.png, seeding.png and config.yaml.
+poses and uniformly, in steps to converge on the same runs (with the bundle's own prior and ONNX encoder
+when it was exported with --prior). It also measures appending: a prior built without every fifth room,
+then their images appended. Writes metrics.json, report.md, table_one.png, layer_weights.png,
+examples.png, seeding.png and config.yaml.
 
 Example: siteloc prior evaluate data/reference/multilayer --bundle bundles/office-0.1.0
 --data data/reference/ingested --out reports/office/prior
