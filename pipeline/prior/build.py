@@ -20,11 +20,6 @@ from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem
 
 
-def _select(meta: dict, raw: dict, keep: np.ndarray) -> tuple[dict, dict]:
-    idx = np.flatnonzero(keep)
-    return {k: [v[i] for i in idx] for k, v in meta.items()}, {n: v[idx] for n, v in raw.items()}
-
-
 def _report(prior, extra: dict) -> str:
     return json.dumps({"images": len(prior.labels), "classes": len(prior.classes),
                        "layers": {n: int(prior.vectors[n].shape[1]) for n in prior.layers},
@@ -37,7 +32,7 @@ def run_prior_build(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
     from pipeline.errors import OutputExistsError
     from pipeline.io.atomic import atomic_dir, write_text_atomic
     from pipeline.prior.evaluate import build_prior
-    from pipeline.prior.features import read_layers
+    from pipeline.prior.features import read_layers, select
 
     out = Path(outputs["out"])
     if out.exists() and not force:
@@ -47,7 +42,7 @@ def run_prior_build(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
     if keep.sum() < 2:
         raise InputError(f"{inputs['features']}: too few database images", [Problem(
             str(inputs["features"]), f"{int(keep.sum())} images in the database", fix="use --all, or more captures")])
-    meta, raw = _select(meta, raw, keep)
+    meta, raw = select(meta, raw, keep)
     prior = build_prior(cfg, meta, raw, rep["encoder"])
     comps = {n: {"kind": prior.compressors[n].KIND, "dims": int(prior.compressors[n].n_components_),
                  "cap": prior.compressors[n].cap_reason_} for n in prior.layers}
@@ -63,7 +58,7 @@ def run_prior_append(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: di
     """A copy of `inputs['prior']` with the images of `inputs['features']` (those of `rooms` if given) added."""
     from pipeline.errors import OutputExistsError
     from pipeline.io.atomic import atomic_dir, write_text_atomic
-    from pipeline.prior.features import read_layers
+    from pipeline.prior.features import read_layers, select
     from pipeline.prior.model import AreaPrior
 
     out = Path(outputs["out"])
@@ -81,7 +76,7 @@ def run_prior_append(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: di
     if not keep.any():
         raise InputError(f"{feats}: nothing to append", [Problem(
             str(feats), f"no image in rooms {rooms}", fix=f"rooms there: {sorted(set(meta['room']))[:20]}")])
-    meta, raw = _select(meta, raw, keep)
+    meta, raw = select(meta, raw, keep)
     known = set(prior.rows["image_id"])
     dup = [i for i, m in enumerate(meta["image_id"]) if m in known]
     if dup:

@@ -23,15 +23,12 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.config import SitelocConfig, write_effective_config
+from pipeline.prior.features import select
 from pipeline.prior.model import MEASURES, AreaPrior, PriorSettings
 
 WEIGHT_GRID = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0), (1 / 3, 1 / 3, 1 / 3), (0.6, 0.3, 0.1),
                (0.1, 0.3, 0.6), (0.5, 0.5, 0.0), (0.5, 0.0, 0.5), (0.0, 0.5, 0.5))
 COMPRESSIONS = ("ipca", "kpca", "srp", "grp", "none")
-
-
-def subset(meta: dict, idx) -> dict:
-    return {k: [v[i] for i in idx] for k, v in meta.items()}
 
 
 def settings_of(cfg: SitelocConfig) -> PriorSettings:
@@ -117,14 +114,13 @@ def append_study(cfg: SitelocConfig, meta_db, raw_db, meta_q, raw_q, encoder, *,
     late = set(rooms[::every])
     first = np.array([r not in late for r in meta_db["room"]])
     t0 = time.perf_counter()
-    prior = build_prior(cfg, subset(meta_db, np.flatnonzero(first)), {n: v[first] for n, v in raw_db.items()},
-                        encoder)
+    prior = build_prior(cfg, *select(meta_db, raw_db, first), encoder)
     build_s = time.perf_counter() - t0
     q_late = np.array([r in late for r in meta_q["room"]])
     before = prior.probabilities(raw_q)
     pred_before = [prior.classes[k] for k in before.argmax(axis=1)]
     t0 = time.perf_counter()
-    prior.append(subset(meta_db, np.flatnonzero(~first)), {n: v[~first] for n, v in raw_db.items()})
+    prior.append(*select(meta_db, raw_db, ~first))
     append_s = time.perf_counter() - t0
     after = prior.probabilities(raw_q)
     pred_after = [prior.classes[k] for k in after.argmax(axis=1)]
@@ -169,8 +165,8 @@ def run_prior_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
         raise InputError(f"{inputs['features']}: nothing to evaluate", [Problem(
             str(inputs["features"]), f"{len(db)} train and {len(q)} test images",
             fix="ingest with a test split (ingest.split.test_fraction > 0)")])
-    meta_db, raw_db = subset(meta, db), {n: v[db] for n, v in raw.items()}
-    meta_q, raw_q = subset(meta, q), {n: v[q] for n, v in raw.items()}
+    meta_db, raw_db = select(meta, raw, db)
+    meta_q, raw_q = select(meta, raw, q)
     metrics = {"site": {"database_images": len(db), "query_images": len(q),
                         "classes": len(set(zip(meta_db["room"], meta_db["area"], strict=True))),
                         "rooms": len(set(meta_db["room"]))},

@@ -61,6 +61,13 @@ def read_layers(features: Path) -> tuple[dict[str, list], dict[str, np.ndarray],
     return meta, vectors, report
 
 
+def select(meta: dict, raw: dict[str, np.ndarray], rows) -> tuple[dict, dict[str, np.ndarray]]:
+    """The rows (indices, or a boolean mask) of `read_layers`' metadata columns and layer vectors."""
+    rows = np.asarray(rows)
+    idx = np.flatnonzero(rows) if rows.dtype == bool else rows
+    return {k: [v[i] for i in idx] for k, v in meta.items()}, {n: v[idx] for n, v in raw.items()}
+
+
 def run_prior_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
                        force: bool = False, progress: bool = True) -> Path:
     from pipeline.descriptors.multilayer import MultiLayerEncoder

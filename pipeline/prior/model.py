@@ -42,6 +42,15 @@ class PriorSettings:
     index: str = "balltree"  # or "brute": the same exact neighbours by numpy (faster at 128-d)
 
 
+def top_areas(probs: np.ndarray, max_areas: int) -> np.ndarray:
+    """Particle shares per class: the `max_areas` most probable classes keep their probability, the rest 0."""
+    probs = np.asarray(probs, dtype=np.float64)
+    keep = np.argsort(-probs, kind="stable")[:max_areas]
+    w = np.zeros_like(probs)
+    w[keep] = probs[keep]
+    return w
+
+
 class AreaPrior:
     def __init__(self, layers: tuple[str, ...], compressors: dict, settings: PriorSettings, encoder: dict):
         self.layers, self.compressors, self.settings, self.encoder = tuple(layers), compressors, settings, encoder

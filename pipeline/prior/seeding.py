@@ -25,15 +25,6 @@ from pipeline.errors import InputError, Problem
 SEEDINGS = ("area_prior", "candidates", "uniform")
 
 
-def area_weights(probs: np.ndarray, max_areas: int) -> np.ndarray:
-    """The prior's probabilities kept for its `max_areas` most probable classes, the rest zeroed."""
-    probs = np.asarray(probs, dtype=np.float64)
-    keep = np.argsort(-probs, kind="stable")[:max_areas]
-    w = np.zeros_like(probs)
-    w[keep] = probs[keep]
-    return w
-
-
 def class_at(lmap, cells: np.ndarray, x: float, y: float) -> int:
     """The class of the free cell at (x, y) in `cells` (`AreaPrior.area_cells`), -1 off the free space."""
     row, col = lmap.cells(x, y)
@@ -78,6 +69,7 @@ def compare_seeding(cfg, prior, bundle, data, *, progress: bool = True) -> dict:
     from pipeline.detection.inference import load_image
     from pipeline.evaluation.experiments import check_same_map, query_runs
     from pipeline.evaluation.metrics import first_settled
+    from pipeline.prior.model import top_areas
     from pipeline.progress import progress_bar
     from pipeline.runtime.amcl import AdaptiveMCL
     from pipeline.runtime.localizer import Localizer
@@ -106,7 +98,7 @@ def compare_seeding(cfg, prior, bundle, data, *, progress: bool = True) -> dict:
     for run, first, end in segments:
         image = data / run.image_ids[first]
         probs = probabilities(image)
-        weights = area_weights(probs, p.max_areas)
+        weights = top_areas(probs, p.max_areas)
         cands = loc.candidates(image)
         # The true class at the start: that of the free cell under its ground-truth position.
         true_class = class_at(loc.map, cells, run.gt[first, 0], run.gt[first, 1])

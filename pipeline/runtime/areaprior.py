@@ -16,6 +16,7 @@ retrieved poses. numpy, scipy, scikit-learn's BallTree and onnxruntime only.
 from __future__ import annotations
 
 import json
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +55,13 @@ class AreaPriorSeeder:
                                             providers=["CPUExecutionProvider"])
         self.image_hw = tuple(self.meta["image_hw"])
         self.max_areas = max_areas
-        self.cells = self.prior.area_cells(lmap, area_radius_m)
+        self._lmap, self._area_radius_m = lmap, area_radius_m
+
+    @cached_property
+    def cells(self) -> np.ndarray:
+        """(K,) class of each free cell of the map (-1: none), computed when first needed: a bundle that seeds
+        from poses does not pay for it at load."""
+        return self.prior.area_cells(self._lmap, self._area_radius_m)
 
     def layers(self, image) -> dict[str, np.ndarray]:
         """The image's raw (uncompressed) layer vectors, each (1, D)."""
@@ -67,8 +74,6 @@ class AreaPriorSeeder:
 
     def weights(self, probs: np.ndarray) -> np.ndarray:
         """The `max_areas` most probable classes' probabilities (others 0): particle shares per area."""
-        probs = np.asarray(probs, dtype=np.float64)
-        keep = np.argsort(-probs, kind="stable")[: self.max_areas]
-        w = np.zeros_like(probs)
-        w[keep] = probs[keep]
-        return w
+        from pipeline.prior.model import top_areas
+
+        return top_areas(probs, self.max_areas)

@@ -84,9 +84,12 @@ class LaserMap:
 
     def sample_free(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """(n, 3) poses uniform over the free space (uniform within a cell) with uniform headings."""
-        idx = self.free_cells[rng.integers(0, len(self.free_cells), size=n)]
-        row, col = np.divmod(idx, self.width)
-        u = rng.random((3, n))
+        return self._poses_in(self.free_cells[rng.integers(0, len(self.free_cells), size=n)], rng)
+
+    def _poses_in(self, cells: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """One pose per flat cell index: uniform within the cell, uniform heading."""
+        row, col = np.divmod(cells, self.width)
+        u = rng.random((3, len(cells)))
         x = self.origin_x + (col + u[0]) * self.resolution
         y = self.origin_y + (row + u[1]) * self.resolution
         return np.column_stack([x, y, (u[2] * 2.0 - 1.0) * np.pi])
@@ -108,12 +111,7 @@ class LaserMap:
         order = np.argsort(cell_region, kind="stable")
         starts = np.searchsorted(cell_region[order], np.arange(len(w)))
         picks = [order[starts[r] + rng.integers(0, sizes[r], size=c)] for r, c in enumerate(counts) if c]
-        idx = self.free_cells[np.concatenate(picks)]
-        row, col = np.divmod(idx, self.width)
-        u = rng.random((3, n))
-        x = self.origin_x + (col + u[0]) * self.resolution
-        y = self.origin_y + (row + u[1]) * self.resolution
-        return np.column_stack([x, y, (u[2] * 2.0 - 1.0) * np.pi])
+        return self._poses_in(self.free_cells[np.concatenate(picks)], rng)
 
     def sample_around(self, centres: np.ndarray, weights: np.ndarray, n: int, std_xy: float, std_theta: float,
                       rng: np.random.Generator, tries: int = 8) -> np.ndarray:
