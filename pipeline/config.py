@@ -379,7 +379,8 @@ def _model_at(model: type[BaseModel], loc: tuple) -> type[BaseModel] | None:
 def resolve_preset(name_or_path: str | Path) -> Path:
     """A path to a YAML file, or the name of a preset in `configs/` (`demo`, `ci`, `paper`)."""
     p = Path(name_or_path)
-    if p.suffix in (".yaml", ".yml") or p.exists():
+    # A directory that happens to share a preset's name (a `demo/` output folder, say) is not a config file.
+    if p.suffix in (".yaml", ".yml") or p.is_file():
         if not p.is_file():
             raise ConfigError(f"{p}: config file not found")
         return p

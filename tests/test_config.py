@@ -71,3 +71,13 @@ def test_effective_config_round_trips(tmp_path):
     doc = yaml.safe_load((tmp_path / "config.yaml").read_text())
     assert doc["stage"] == "ingest" and doc["inputs"] == {"site": "x"}
     assert SitelocConfig.model_validate(doc["config"]) == cfg
+
+
+def test_a_directory_named_like_a_preset_does_not_shadow_it(tmp_path, monkeypatch):
+    from pipeline.config import resolve_preset
+
+    (tmp_path / "demo").mkdir()
+    monkeypatch.chdir(tmp_path)
+    assert resolve_preset("demo") == CONFIG_DIR / "demo.yaml"
+    with pytest.raises(ConfigError, match="config file not found"):
+        resolve_preset("missing.yaml")
