@@ -147,6 +147,29 @@ class KidnapConfig(Strict):
         "of the laser) must not throw away a right belief; the next scans decide between it and the new ones")
 
 
+class ScanCheckConfig(Strict):
+    """Retrieved poses checked against the current scan before particles are seeded or injected there."""
+
+    pool: int = Field(10, ge=0, description="check this many retrieved poses (the image's re-ranked Top-N, the "
+                      "sequence's Top-N) against the scan and seed or inject at the len(candidate_weights) that fit "
+                      "it best; 0: retrieval's own Top-4, unchecked (seed 000). Office: 10 and 50 beat 0 and 20")
+    samples: int = Field(64, ge=1, description="poses drawn around each checked one (init_std_xy; the source's "
+                         "heading spread); the best-fitting one is where particles go")
+
+
+class ChallengeConfig(Strict):
+    """While tracking, the camera keeps testing the belief: a retrieved pose far from it that fits the scan
+    better gets a few particles, so a kidnapping the laser cannot see (a twin of the place fits it) is
+    found when the twin stops fitting."""
+
+    every: int = Field(0, ge=0, description="test every this many tracking updates that come with an image "
+                       "(each costs one retrieval); 0: off (seed 000: the camera is used only when lost)")
+    particles: int = Field(250, ge=1, description="particles injected around each challenger")
+    min_distance_m: float = Field(3.0, gt=0, description="a challenger is a checked pose this far from the estimate")
+    margin: float = Field(0.0, ge=0, description="... whose best fit beats the estimate's by this much, per beam "
+                          "(log-likelihood)")
+
+
 class FilterConfig(Strict):
     """The runtime filter: adaptive Monte Carlo localization on the laser map (seed 000, section 3.2)."""
 
@@ -172,8 +195,10 @@ class FilterConfig(Strict):
     candidate_weights: tuple[float, ...] = Field((4.0, 3.0, 2.0, 1.0), min_length=1)
     inject_particles: int = Field(1000, ge=0, description="particles injected around candidates per step when lost")
     inject_while_relocalising: bool = Field(
-        False, description="inject at every step with an image until the filter tracks again, not only at the "
-        "step it declares itself lost (faster on a site whose retrieval is good; wrong candidates pull it away)")
+        True, description="keep injecting the image's candidates at every update with an image until the filter "
+        "tracks again (with a sequence model: for as long as the sequence's are injected, both checked together), "
+        "not only at the update it declares itself lost; with scan_check, office recovered 88 of 100 kidnappings "
+        "within 15 steps against 78 (unchecked it was worse: wrong candidates pull the filter away)")
     seed_with: Literal["candidates", "area_prior"] = Field(
         "candidates", description="how the first camera image starts the filter: around its Top-4 retrieved "
         "poses (seed 000), or over the free space of its most probable (room, area) classes (seed 001's prior; "
@@ -197,11 +222,15 @@ class FilterConfig(Strict):
         "again: on a quasi-symmetric floor a wrong twin of the place can fit the laser and be tracked; on office "
         "6 steps raised the kidnappings recovered within 15 steps from 16 to 27 of 40 (0 stops at once)")
     mixture_share: float = Field(0.1, ge=0, le=1, description="mixture MCL: share drawn from the dual proposal")
+    scan_check: ScanCheckConfig = ScanCheckConfig()
+    challenge: ChallengeConfig = ChallengeConfig()
 
     @model_validator(mode="after")
     def _counts(self) -> FilterConfig:
         if self.min_particles > self.max_particles:
             raise ValueError(f"min_particles {self.min_particles} > max_particles {self.max_particles}")
+        if self.challenge.every and not self.scan_check.pool:
+            raise ValueError("challenge.every needs scan_check.pool > 0: challengers are checked against the scan")
         return self
 
 

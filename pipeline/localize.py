@@ -101,16 +101,20 @@ def replay_bundle(run, loc, data: Path, trial: int) -> dict:
                                                                    fix="use a run recorded with a camera")])
     loc.reset(seed=loc.base_seed + trial)  # trial t: seed + t, whatever was replayed before
     out = {k: [] for k in ("pose", "cov", "state", "particles", "updated", "best", "ms")}
+    seeded = None  # the candidates the filter started from (x, y, theta, weight)
     for t in range(len(run)):
         image = data / run.image_ids[t] if run.image_ids[t] else None
         t0 = time.perf_counter()
         e = loc.update(run.odom[t], run.ranges[t], image=image)
         out["ms"].append((time.perf_counter() - t0) * 1000.0)
+        if seeded is None and e.candidates is not None:
+            seeded = e.candidates
         for key, value in (("pose", e.pose), ("cov", e.covariance), ("state", e.state), ("particles", e.n_particles),
                            ("updated", e.updated), ("best", e.best_likelihood)):
             out[key].append(value)
     out = {k: (v if k == "state" else np.array(v)) for k, v in out.items()}
     out["final_particles"] = loc.filter.particles.copy()
+    out["seed_candidates"] = seeded
     return out
 
 

@@ -81,10 +81,11 @@ class PerImageCache:
 
 
 class CachedRetrieval(PerImageCache):
-    """A Localizer's `candidates`, computed once per image file (deterministic; 0.04-0.07 s each on 2 cores)."""
+    """A Localizer's `retrieved` poses (Top-N, best first), computed once per image file (deterministic;
+    0.04-0.07 s each on 2 cores)."""
 
     def __init__(self, loc):
-        super().__init__(loc.candidates)
+        super().__init__(loc.retrieved)
 
 
 def query_runs(data: Path, names: list[str] | None) -> list:
@@ -160,19 +161,25 @@ def image_only_replay(run, data: Path, retrieve: CachedRetrieval) -> dict:
 
 
 def run_experiments(loc, data: Path, runs: list, *, trials: int, threshold_m: float = 0.5, hold: int = 10,
-                    progress: bool = True) -> tuple[dict[str, list[Replay]], CachedRetrieval]:
-    """Every method on every run and trial; returns {method: [Replay]} and the retrieval cache."""
+                    progress: bool = True, methods: list[str] | None = None,
+                    retrieve: CachedRetrieval | None = None) -> tuple[dict[str, list[Replay]], CachedRetrieval]:
+    """Every method (or those named) on every run and trial; returns {method: [Replay]} and the retrieval
+    cache (pass it back as `retrieve` to replay other settings without describing the frames again)."""
     from pipeline.localize import replay_bundle, replay_one
     from pipeline.progress import progress_bar
 
-    retrieve = CachedRetrieval(loc)
-    loc.candidates = retrieve  # the Localizer calls self.candidates: every trial shares the cache
+    retrieve = retrieve or CachedRetrieval(loc)
+    loc.retrieved = retrieve  # the Localizer calls self.retrieved: every trial shares the cache
     fcfg = loc.filter_config.model_copy(update={"seed": loc.base_seed})
     mount = loc.laser.base_from_laser
-    methods = [m for m in METHODS if m not in ("image_reloc", "sequence") or loc.sequence is not None]
+    unknown = sorted(set(methods or ()) - set(METHODS))
+    if unknown:
+        raise ValueError(f"unknown methods {unknown}; known: {list(METHODS)}")
+    methods = [m for m in METHODS if (m not in ("image_reloc", "sequence") or loc.sequence is not None)
+               and (methods is None or m in methods)]
     out: dict[str, list[Replay]] = {m: [] for m in methods}
     jobs = [(m, r, t) for m in methods if m != "image_only" for r in runs for t in range(trials)]
-    jobs += [("image_only", r, 0) for r in runs]
+    jobs += [("image_only", r, 0) for r in runs if "image_only" in methods]
     own = loc.filter_config
     if loc.sequence is not None:
         loc.sequence.encode = PerImageCache(loc.sequence.encode)  # each frame's logits, once
@@ -188,7 +195,7 @@ def run_experiments(loc, data: Path, runs: list, *, trials: int, threshold_m: fl
                 rep = replay_one(run, loc.map, fcfg.model_copy(update={"method": method}), mount, "uniform", trial)
             out[method].append(_replay(run, trial, rep, threshold_m, hold))
     finally:
-        del loc.candidates  # the class's own method again
+        del loc.retrieved  # the class's own method again
         loc.filter_config = own
         if loc.sequence is not None:
             del loc.sequence.encode

@@ -101,9 +101,10 @@ class AdaptiveMCL:
                                        self.rng)
         self._reset(parts, FilterState.TRACKING)
 
-    def init_candidates(self, poses, weights=None, n: int | None = None) -> None:
-        """Weighted candidate poses (image retrieval's Top-K; 4:3:2:1 by default), each with a Gaussian spread."""
-        self._reset(self._around(poses, weights, n or self.cfg.max_particles), FilterState.RELOCALISING)
+    def init_candidates(self, poses, weights=None, n: int | None = None, std_theta=None) -> None:
+        """Weighted candidate poses (image retrieval's Top-K; 4:3:2:1 by default), each with a Gaussian spread
+        (`std_theta`: radians, one or one per pose; default init_std_theta_deg)."""
+        self._reset(self._around(poses, weights, n or self.cfg.max_particles, std_theta), FilterState.RELOCALISING)
 
     def init_regions(self, cell_region: np.ndarray, weights, n: int | None = None) -> None:
         """Global localization from a prior over parts of the map (seed 001's (room, area) probabilities):
@@ -111,7 +112,7 @@ class AdaptiveMCL:
         self._reset(self.map.sample_regions(cell_region, weights, n or self.cfg.max_particles, self.rng),
                     FilterState.RELOCALISING)
 
-    def inject(self, poses, weights=None, n: int | None = None, std_theta: float | None = None) -> int:
+    def inject(self, poses, weights=None, n: int | None = None, std_theta=None) -> int:
         """Add n particles drawn around candidate poses (the paper: 1000 per step while lost).
 
         The set grows by n up to max_particles; beyond that the lightest old particles make room. New
@@ -144,7 +145,7 @@ class AdaptiveMCL:
         self._force = True
         return n
 
-    def _around(self, poses, weights, n: int, std_theta: float | None = None) -> np.ndarray:
+    def _around(self, poses, weights, n: int, std_theta=None) -> np.ndarray:
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
         if weights is None:
             w = np.asarray(self.cfg.candidate_weights[: len(poses)], dtype=np.float64)

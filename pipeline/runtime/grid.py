@@ -117,18 +117,29 @@ class LaserMap:
                       rng: np.random.Generator, tries: int = 8) -> np.ndarray:
         """(n, 3) poses drawn around weighted centre poses (Gaussian), redrawn until they lie in free space.
 
-        Centres are picked in proportion to `weights`. A draw that stays outside free space after `tries`
-        redraws keeps its centre's position (a candidate itself may sit in a cell the map calls unknown).
+        Centres are picked in proportion to `weights`; `std_theta` is one spread or one per centre. A draw
+        that stays outside free space after `tries` redraws keeps its centre's position (a candidate itself
+        may sit in a cell the map calls unknown).
         """
         centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
         w = np.asarray(weights, dtype=np.float64)
         w = w / w.sum()
         which = rng.choice(len(centres), size=n, p=w)
-        base = centres[which]
+        std_theta = np.asarray(std_theta, dtype=np.float64)
+        return self.jitter(centres[which], std_xy, std_theta if std_theta.ndim == 0 else std_theta[which], rng, tries)
+
+    def jitter(self, base: np.ndarray, std_xy: float, std_theta: float, rng: np.random.Generator,
+               tries: int = 8) -> np.ndarray:
+        """One Gaussian draw around each pose of `base` (N, 3), redrawn until it lies in free space (after
+        `tries` redraws it keeps the pose's position); `std_theta` one spread or (N,); headings wrapped to
+        [-pi, pi)."""
+        base = np.asarray(base, dtype=np.float64).reshape(-1, 3)
         out = base.copy()
-        todo = np.arange(n)
+        std = np.empty((len(base), 3))
+        std[:, :2], std[:, 2] = std_xy, std_theta
+        todo = np.arange(len(base))
         for _ in range(tries):
-            noise = rng.standard_normal((len(todo), 3)) * np.array([std_xy, std_xy, std_theta])
+            noise = rng.standard_normal((len(todo), 3)) * std[todo]
             out[todo] = base[todo] + noise
             todo = todo[~self.is_free(out[todo, 0], out[todo, 1])]
             if len(todo) == 0:

@@ -40,7 +40,7 @@ class Estimate:
     n_particles: int
     updated: bool  # False when the filter held the update back (not enough travel)
     candidates: np.ndarray | None  # (K, 4) x, y, theta, weight when retrieval ran this step
-    source: str | None  # what seeded or injected: image, sequence, area_prior, image+area_prior (None: nothing)
+    source: str | None  # what seeded or injected: image, sequence, sequence+image, area_prior, image+area_prior
     best_likelihood: float  # per-beam relative likelihood of the best particle, (0, 1]
 
 
@@ -112,6 +112,7 @@ class Localizer:
         self.awaiting_sequence = False  # lost, and the sequence has not yet brought the filter back
         self._was_lost = False
         self._confirmed = 0
+        self._tracking_images = 0  # tracking updates with an image, for filter.challenge.every
         if getattr(self, "sequence", None) is not None:
             self.sequence.keep_last(0)
 
@@ -142,8 +143,9 @@ class Localizer:
         loc._unpacked = unpacked  # lives as long as the Localizer
         return loc
 
-    def candidates(self, image) -> np.ndarray:
-        """(K, 4) x, y, theta, weight: the image's Top-K poses after IPA retrieval and RPA re-ranking."""
+    def retrieved(self, image) -> np.ndarray:
+        """(N, 3) x, y, theta: the image's Top-N database poses (N = retrieval.top_n), best first, after IPA
+        retrieval and RPA re-ranking."""
         from pipeline.retrieval.database import query_database
 
         d = self.describer.describe(image)
@@ -151,7 +153,11 @@ class Localizer:
         regions = d.rpa[d.query_rows(r["query_regions"])]
         found = query_database(self.database, d.ipa, regions, top_n=r["top_n"],
                                weights=tuple(r["candidate_weights"]), rerank=r.get("rerank", True))
-        return found.candidates
+        return self.database.db.poses[found.ranked]
+
+    def candidates(self, image) -> np.ndarray:
+        """(K, 4) x, y, theta, weight: the image's Top-K poses (K = len(candidate_weights)), weights normalised."""
+        return weighted_candidates(self.retrieved(image), self.retrieval["candidate_weights"])
 
     @property
     def relocalise_with(self) -> str:
@@ -164,6 +170,61 @@ class Localizer:
     def sequence_candidates(self) -> np.ndarray:
         """(K, 4) x, y, theta, weight: the Top-K database windows of the buffered frames."""
         return self.sequence.candidates(tuple(self.retrieval["candidate_weights"]))
+
+    def proposals(self, sources: tuple[str, ...], image, scan) -> tuple[np.ndarray, np.ndarray]:
+        """Where particles go: (K, 4) x, y, theta, weight and (K,) each one's heading spread (radians).
+
+        From retrieval's Top-K of the image ("image") or of the buffered frames ("sequence"; with both,
+        each source's Top-K at half weight), or, with `filter.scan_check.pool`, the K (K =
+        len(candidate_weights)) of the sources' Top-pool whose neighbourhood fits `scan` best, at their
+        best-fitting pose (`pipeline.runtime.scancheck`), weighted as retrieval's Top-K would be."""
+        from pipeline.runtime.scancheck import check_candidates
+
+        weights = self.retrieval["candidate_weights"]
+        sc, fcfg = self.filter_config.scan_check, self.filter_config
+        k = max(sc.pool, len(weights))
+        pools, spreads = [], []
+        for source in sources:
+            pool = self.sequence.ranked(k) if source == "sequence" else self.retrieved(image)
+            deg = fcfg.sequence_heading_std_deg if source == "sequence" else None
+            pools.append(pool[: sc.pool] if sc.pool else pool)
+            spreads.append(np.full(len(pools[-1]), np.radians(deg if deg is not None else fcfg.init_std_theta_deg)))
+        if sc.pool and scan is not None:
+            pool, spread = np.vstack(pools), np.concatenate(spreads)
+            checked = check_candidates(self.filter.sensor, self.map, pool, scan, keep=len(weights),
+                                       samples=sc.samples, std_xy=fcfg.init_std_xy, std_theta=spread,
+                                       rng=self.filter.rng)
+            if checked is not None:
+                return weighted_candidates(checked.poses, weights), spread[checked.rank]
+        cands = [weighted_candidates(p, weights) for p in pools]
+        out = np.vstack(cands)
+        out[:, 3] /= len(cands)
+        return out, np.concatenate([sp[: len(c)] for sp, c in zip(spreads, cands, strict=True)])
+
+    def _challenge(self, image, scan, estimate: np.ndarray) -> np.ndarray | None:
+        """Test the tracked belief against the image (`filter.challenge`): the image's Top-pool and the
+        estimate are checked against the scan alike; each pool pose at least min_distance_m from the
+        estimate that fits better than the estimate by margin gets `particles` particles. Returns the
+        challengers (K, 4: x, y, theta, weight) or None."""
+        from pipeline.runtime.scancheck import check_candidates
+
+        fcfg = self.filter_config
+        ch, sc = fcfg.challenge, fcfg.scan_check
+        pool = np.vstack([np.asarray(estimate, dtype=np.float64)[None], self.retrieved(image)[: sc.pool]])
+        checked = check_candidates(self.filter.sensor, self.map, pool, scan, keep=len(pool), samples=sc.samples,
+                                   std_xy=fcfg.init_std_xy, std_theta=np.radians(fcfg.init_std_theta_deg),
+                                   rng=self.filter.rng)
+        if checked is None:
+            return None
+        beams = max(self.filter.sensor.beams(scan)[0].size, 1)
+        own = float(checked.log_likelihood[checked.rank == 0][0])
+        far = np.hypot(*(checked.poses[:, :2] - np.asarray(estimate)[:2]).T) >= ch.min_distance_m
+        better = far & (checked.rank > 0) & ((checked.log_likelihood - own) / beams > ch.margin)
+        if not better.any():
+            return None
+        poses = checked.poses[better]
+        self.filter.inject(poses, np.ones(len(poses)), n=ch.particles * len(poses))
+        return np.column_stack([poses, np.full(len(poses), 1.0 / len(poses))])
 
     def scan(self, ranges) -> object:
         from pipeline.runtime.sensor import Scan
@@ -192,6 +253,7 @@ class Localizer:
         self._was_lost = self.started and state == FilterState.LOST
         if use_sequence and image is not None:
             self.sequence.push(image)
+        sources_now = ["start"] if not self.started else []
         if not self.started:
             if image is not None and self.filter_config.seed_with == "area_prior":
                 # Seed 001: whole areas, not poses; retrieval still injects once the filter is lost.
@@ -199,8 +261,8 @@ class Localizer:
                 self.filter.init_regions(self.area_prior.cells, weights)
                 self.seeded_by_retrieval, source = True, "area_prior"
             elif image is not None:
-                cands = self.candidates(image)
-                self.filter.init_candidates(cands[:, :3], cands[:, 3])
+                cands, spread = self.proposals(("image",), image, scan)
+                self.filter.init_candidates(cands[:, :3], cands[:, 3], std_theta=spread)
                 self.seeded_by_retrieval, source = True, "image"
             else:
                 self.filter.init_uniform()
@@ -214,17 +276,21 @@ class Localizer:
                     self.awaiting_sequence = False
             elif self.awaiting_sequence:
                 self._confirmed = 0
+            fcfg = self.filter_config
+            sources = []
             if self.awaiting_sequence and self.sequence.ready:
-                cands, source = self.sequence_candidates(), "sequence"
-            elif image is not None and ((state == FilterState.LOST and mode != "sequence")
-                                        or not self.seeded_by_retrieval
-                                        or (state == FilterState.RELOCALISING and mode == "image"
-                                            and self.filter_config.inject_while_relocalising)):
-                cands, source = self.candidates(image), "image"
-            if cands is not None:
-                spread = self.filter_config.sequence_heading_std_deg if source == "sequence" else None
-                self.filter.inject(cands[:, :3], cands[:, 3],
-                                   std_theta=None if spread is None else np.radians(spread))
+                sources.append("sequence")
+            lost = state == FilterState.LOST
+            if image is not None and (
+                    (not sources and ((lost and mode != "sequence") or not self.seeded_by_retrieval))
+                    or (fcfg.inject_while_relocalising and mode != "sequence"
+                        and (state == FilterState.RELOCALISING or sources))):
+                sources.append("image")
+            sources_now = sources
+            if sources:
+                cands, spread = self.proposals(tuple(sources), image, scan)
+                source = "+".join(sources)
+                self.filter.inject(cands[:, :3], cands[:, 3], std_theta=spread)
                 self.seeded_by_retrieval = True
             if (self.filter_config.inject_areas and image is not None and state == FilterState.LOST
                     and not lost_before):
@@ -233,5 +299,18 @@ class Localizer:
                                            self.area_prior.weights(self.area_prior.probabilities(image)))
                 source = "image+area_prior" if source == "image" else (source or "area_prior")
         res = self.filter.update(odometry, scan)
+        if (res.updated and res.state == FilterState.TRACKING and image is not None and scan is not None
+                and not sources_now and not self.awaiting_sequence and self.filter_config.challenge.every):
+            self._tracking_images += 1
+            if self._tracking_images % self.filter_config.challenge.every == 0:
+                cands = self._challenge(image, scan, res.pose)
+                source = "challenge" if cands is not None else None
         return Estimate(res.pose, res.covariance, res.state.value, res.particles, res.updated, cands, source,
                         res.best_likelihood)
+
+
+def weighted_candidates(poses: np.ndarray, weights) -> np.ndarray:
+    """(K, 4): the first K = len(weights) poses (fewer if there are fewer) with their weights normalised."""
+    k = min(len(weights), len(poses))
+    w = np.asarray(weights[:k], dtype=np.float64)
+    return np.column_stack([np.asarray(poses)[:k, :3], w / w.sum()])

@@ -94,13 +94,18 @@ class SequenceRelocaliser:
         pooled = self.lstm.run(None, {"frames": np.asarray(frames, np.float32)[None]})[0]
         return self.whitening.transform(pooled)[0]
 
-    def candidates(self, weights=(4.0, 3.0, 2.0, 1.0)) -> np.ndarray:
-        """(K, 4) x, y, theta, weight of the buffer's Top-K database windows (K = len(weights)), by inner
-        product of whitened descriptors, one candidate per database window; weights normalised."""
+    def ranked(self, n: int) -> np.ndarray:
+        """(n, 3) x, y, theta of the buffer's Top-n database windows (the pose of each one's last frame), by
+        inner product of whitened descriptors, best first; fewer when the database is smaller."""
         if not self.buffer:
             raise BundleError("no frames in the sequence buffer yet")
         q = self.describe(self.logits())
-        k = min(len(weights), len(self.db))
-        top = np.argsort(-(self.db @ q), kind="stable")[:k]
-        w = np.asarray(weights[:k], dtype=np.float64)
-        return np.column_stack([self.db_poses[top], w / w.sum()])
+        top = np.argsort(-(self.db @ q), kind="stable")[: min(n, len(self.db))]
+        return self.db_poses[top]
+
+    def candidates(self, weights=(4.0, 3.0, 2.0, 1.0)) -> np.ndarray:
+        """(K, 4) x, y, theta, weight of the buffer's Top-K database windows (K = len(weights)), one candidate
+        per database window; weights normalised."""
+        poses = self.ranked(len(weights))
+        w = np.asarray(weights[: len(poses)], dtype=np.float64)
+        return np.column_stack([poses, w / w.sum()])

@@ -49,9 +49,9 @@ def test_cached_retrieval_describes_each_image_once():
     calls = []
 
     class Loc:
-        def candidates(self, image):
+        def retrieved(self, image):
             calls.append(image)
-            return np.full((4, 4), float(len(calls)))
+            return np.full((50, 3), float(len(calls)))
 
     cache = CachedRetrieval(Loc())
     first = cache("a.png")
@@ -156,9 +156,15 @@ def test_image_only_and_table1_match_a_fresh_localizer(report):
     for k in (0, len(run) // 2, len(run) - 1):
         top1 = loc.candidates(ing / run.image_ids[k])[0]
         np.testing.assert_allclose([t["x"][rows[k]], t["y"][rows[k]]], top1[:2], atol=1e-9)
-    first = loc.candidates(ing / run.image_ids[0])
+    # Table 1 holds what the filter started from: trial 0's first update, replayed by a fresh Localizer
+    # (with filter.scan_check, the four of the first frame's Top-pool that fit the first scan best).
+    loc.reset(seed=loc.base_seed)
+    first = loc.update(run.odom[0], run.ranges[0], image=ing / run.image_ids[0]).candidates
     np.testing.assert_allclose(doc["table1"][0]["candidates"], first, atol=1e-3)
     np.testing.assert_allclose(np.asarray(doc["table1"][0]["candidates"])[:, 3], [0.4, 0.3, 0.2, 0.1], rtol=1e-6)
+    pool = loc.retrieved(ing / run.image_ids[0])[: loc.filter_config.scan_check.pool]
+    near = np.min(np.hypot(*(first[:, None, :2] - pool[None, :, :2]).transpose(2, 0, 1)), axis=1)
+    assert np.all(near < 5 * loc.filter_config.init_std_xy)  # each one a perturbation of a retrieved pose
 
 
 def test_same_inputs_give_the_same_report(report, tmp_path):

@@ -109,8 +109,7 @@ def test_closed_loop_injects_the_sequence_every_step_from_lost_until_tracking(mi
         return np.full(1000, float(n["v"]), np.float32)
 
     loc.sequence.encode = encode
-    loc.candidates = lambda image: np.array([[1.0, 2.0, 0.0, 0.4], [3.0, 4.0, 0.0, 0.3], [5.0, 6.0, 0.0, 0.2],
-                                             [7.0, 8.0, 0.0, 0.1]])
+    loc.retrieved = lambda image: np.array([[1.0, 2.0, 0.0], [3.0, 4.0, 0.0], [5.0, 6.0, 0.0], [7.0, 8.0, 0.0]])
     # Lost for two updates (nothing injected yet): the buffer is trimmed once, at the first.
     states = ["tracking"] * 4 + ["lost", "lost"] + ["relocalising"] * 4 + ["tracking"] * 3
     loc.filter = StubFilter(states)
@@ -131,12 +130,27 @@ def test_closed_loop_injects_the_sequence_every_step_from_lost_until_tracking(mi
         np.testing.assert_allclose(w.sum(), 1.0)  # injection weights stay normalised
         assert spread == pytest.approx(np.radians(fc.sequence_heading_std_deg))
 
-    loc.filter_config = loc.filter_config.model_copy(update={"relocalise_with": "both"})
+    # Both, injecting the image only when declared lost: the image then, the sequence once ready.
+    loc.filter_config = loc.filter_config.model_copy(update={"relocalise_with": "both",
+                                                             "inject_while_relocalising": False})
     loc.reset()
     loc.sequence.encode = encode
     loc.filter, loc.started, loc.seeded_by_retrieval = StubFilter(states), True, True
     sources = [loc.update(np.zeros(3), None, image="frame").source for _ in states]
-    assert sources[lost_at + 1] == "image" and sources[first] == "sequence"
+    assert sources[lost_at + 1] == "image" and sources[first:back + 1] == ["sequence"] * (back + 1 - first)
+    # ... and injecting the image while re-localizing: every update from lost to tracking, with the sequence
+    # once it is ready (each source's Top-4 at half weight).
+    loc.filter_config = loc.filter_config.model_copy(update={"inject_while_relocalising": True})
+    loc.reset()
+    loc.sequence.encode = encode
+    loc.filter, loc.started, loc.seeded_by_retrieval = StubFilter(states), True, True
+    sources = [loc.update(np.zeros(3), None, image="frame").source for _ in states]
+    assert sources[lost_at + 1:first] == ["image"] * (first - lost_at - 1)
+    assert sources[first:back + 1] == ["sequence+image"] * (back + 1 - first)
+    assert sources[back + 1:] == [None] * (len(states) - back - 1)
+    _, w, spread = loc.filter.injected[-1]
+    np.testing.assert_allclose(w, np.r_[[0.4, 0.3, 0.2, 0.1], [0.4, 0.3, 0.2, 0.1]] / 2)
+    np.testing.assert_allclose(spread, np.radians([fc.sequence_heading_std_deg] * 4 + [fc.init_std_theta_deg] * 4))
 
     # With confirmation steps the sequence keeps proposing for that many updates after tracking resumes.
     loc.filter_config = loc.filter_config.model_copy(update={"relocalise_with": "sequence",
@@ -190,3 +204,34 @@ def test_export_refuses_a_sequence_model_whose_frames_were_encoded_otherwise(mic
         run_export(cfg, inputs={"model": model, "index": index, "data": ing, "sequence": tmp_path / "none"},
                    outputs={"out": tmp_path / "c"})
     assert "point --sequence at" in err.value.render() and not (tmp_path / "c").exists()
+
+
+def test_a_tracked_twin_is_challenged_by_the_image_and_the_truth_left_alone(micro_sequence_bundle):
+    """filter.challenge: a retrieved pose far from a wrong estimate that fits the scan gets particles;
+    with the estimate right, poses that fit worse get none."""
+    from pipeline.evaluation.replay import load_run
+    from pipeline.runtime.localizer import Localizer
+
+    _, ing, _, bundle = micro_sequence_bundle
+    loc = Localizer.from_bundle(bundle)
+    run = load_run(sorted((ing / "runs").glob("query_*.parquet"))[0])
+    t = len(run) // 2
+    truth, scan = run.gt[t], loc.scan(run.ranges[t])
+    fcfg = loc.filter_config
+    assert fcfg.scan_check.pool > 0
+    loc.filter_config = fcfg.model_copy(update={"challenge": fcfg.challenge.model_copy(update={"every": 1})})
+    loc.reset()
+    far = loc.map.sample_free(2000, np.random.default_rng(3))
+    far = far[np.hypot(*(far[:, :2] - truth[:2]).T) > 4.0][:5]
+    loc.retrieved = lambda image: np.vstack([far[1:], truth + [0.2, -0.1, 0.1]])
+    loc.filter.init_pose(far[0])
+    before = len(loc.filter.particles)
+    got = loc._challenge("frame", scan, far[0])
+    assert got is not None
+    assert np.min(np.hypot(*(got[:, :2] - truth[:2]).T)) < 1.0
+    assert len(loc.filter.particles) == min(before + fcfg.challenge.particles * len(got), fcfg.max_particles)
+    np.testing.assert_allclose(loc.filter.weights.sum(), 1.0)
+
+    loc.retrieved = lambda image: far[1:]
+    loc.filter.init_pose(truth)
+    assert loc._challenge("frame", scan, truth) is None

@@ -1,0 +1,103 @@
+"""Retrieved poses checked against the scan (`pipeline.runtime.scancheck`) and the filter's tracking challenge."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.config import FilterConfig
+from pipeline.runtime.grid import LaserMap
+from pipeline.runtime.scancheck import check_candidates
+from pipeline.runtime.sensor import Scan, make_sensor_model
+from pipeline.sitegen.laser import LaserScanner, rasterise_map
+from pipeline.sitegen.trajectories import sample_stops
+from tests.sitegen.small_floor import small_floor
+
+RANGE_MAX = 30.0
+
+
+@pytest.fixture(scope="module")
+def world():
+    scene = small_floor()
+    occ = rasterise_map(scene)
+    cfg = FilterConfig()
+    lmap = LaserMap.from_occupancy(occ, cfg.sensor.max_distance)
+    sensor = make_sensor_model(lmap, cfg.sensor, RANGE_MAX)
+    scanner = LaserScanner(occ, beams=271, fov_deg=270, range_max=RANGE_MAX, seed=1)
+    stops = np.array([s[:2] for s in sample_stops(scene, occ, spacing=2.0, clearance=0.45, jitter=0.3, seed=4)])
+    return lmap, sensor, scanner, stops
+
+
+def scan_at(scanner, pose) -> Scan:
+    ranges = scanner.cast_many(np.asarray(pose, dtype=np.float64)[None])[0]
+    return Scan(ranges, scanner.angle_min, scanner.angle_increment, RANGE_MAX)
+
+
+def test_the_true_place_is_picked_from_decoys_and_refined(world):
+    lmap, sensor, scanner, stops = world
+    truth = np.array([*stops[3, :2], 0.7])
+    scan = scan_at(scanner, truth)
+    rng = np.random.default_rng(0)
+    # Retrieval ranked the truth (0.4 m and 10 degrees off) ninth, behind decoys at other stops.
+    decoys = np.column_stack([stops[[10, 20, 12, 5, 15, 18, 21, 0], :2], rng.uniform(-np.pi, np.pi, 8)])
+    near = truth + np.array([0.3, -0.25, np.radians(10)])
+    retrieved = np.vstack([decoys, near])
+    got = check_candidates(sensor, lmap, retrieved, scan, keep=4, samples=128, std_xy=0.5,
+                           std_theta=np.radians(15), rng=np.random.default_rng(1))
+    assert got.rank[0] == 8
+    # The best perturbation is nearer the truth than the retrieved pose it came from.
+    assert np.hypot(*(got.poses[0, :2] - truth[:2])) < np.hypot(*(near[:2] - truth[:2]))
+    # Scores are the sensor's own, in descending order; the kept poses are free.
+    again = sensor.evaluate(got.poses, scan)
+    np.testing.assert_allclose(got.log_likelihood, again.log_likelihood, rtol=1e-6)
+    np.testing.assert_allclose(got.relative_likelihood, again.relative_likelihood, rtol=1e-6)
+    assert np.all(np.diff(got.log_likelihood) <= 0)
+    assert len(set(got.rank.tolist())) == 4
+
+
+def test_a_candidates_score_is_the_best_of_its_perturbations(world):
+    """Brute-force twin: the same draws scored one candidate at a time."""
+    lmap, sensor, scanner, stops = world
+    scan = scan_at(scanner, [*stops[7, :2], -1.2])
+    retrieved = np.column_stack([stops[[7, 8, 9], :2], [-1.0, 0.0, 2.0]])
+    samples, std = 16, np.radians([15.0, 180.0, 15.0])
+    got = check_candidates(sensor, lmap, retrieved, scan, keep=3, samples=samples, std_xy=0.5, std_theta=std,
+                           rng=np.random.default_rng(5))
+    rng = np.random.default_rng(5)
+    poses = lmap.jitter(np.repeat(retrieved, samples, axis=0), 0.5, np.repeat(std, samples), rng)
+    poses[::samples] = retrieved
+    ll = sensor.evaluate(poses, scan).log_likelihood.reshape(3, samples)
+    for rank, score in zip(got.rank, got.log_likelihood, strict=True):
+        assert score == pytest.approx(ll[rank].max(), rel=1e-9)
+
+
+def test_without_usable_beams_retrieval_order_stands(world):
+    lmap, sensor, scanner, stops = world
+    empty = Scan(np.full(271, np.inf), scanner.angle_min, scanner.angle_increment, RANGE_MAX)
+    got = check_candidates(sensor, lmap, np.column_stack([stops[:5, :2], np.zeros(5)]), empty, keep=4, samples=8,
+                           std_xy=0.5, std_theta=0.2, rng=np.random.default_rng(0))
+    assert got is None
+    with pytest.raises(ValueError, match="no retrieved poses"):
+        check_candidates(sensor, lmap, np.zeros((0, 3)), empty, keep=4, samples=8, std_xy=0.5, std_theta=0.2,
+                         rng=np.random.default_rng(0))
+
+
+def test_jitter_spreads_each_pose_by_its_own_heading_std(world):
+    lmap, _, _, stops = world
+    base = np.repeat(np.column_stack([stops[:2, :2], [0.0, 0.0]]), 4000, axis=0)
+    std = np.repeat([0.05, 1.0], 4000)
+    out = lmap.jitter(base, 0.2, std, np.random.default_rng(2))
+    assert lmap.is_free(out[:, 0], out[:, 1]).all()
+    spread = [np.std(out[:4000, 2]), np.std(out[4000:, 2])]
+    assert spread[0] == pytest.approx(0.05, rel=0.1) and spread[1] == pytest.approx(1.0, rel=0.1)
+    # One scalar spread draws exactly what sample_around always drew.
+    a = lmap.sample_around(base[:3], np.ones(3), 50, 0.3, 0.2, np.random.default_rng(9))
+    rng = np.random.default_rng(9)
+    which = rng.choice(3, size=50, p=np.full(3, 1 / 3))
+    np.testing.assert_array_equal(a, lmap.jitter(base[:3][which], 0.3, 0.2, rng))
+
+
+def test_challenge_needs_the_scan_check():
+    with pytest.raises(ValueError, match="scan_check.pool"):
+        FilterConfig(challenge={"every": 1}, scan_check={"pool": 0})
+    assert FilterConfig(challenge={"every": 2}).challenge.every == 2
