@@ -9,7 +9,10 @@ retrieved against the bundle's database (IPA Top-N, RPA re-ranking) and its Top-
 4:3:2:1, seed the adaptive MCL; without an image the filter starts uniform over the free space. Whenever
 the filter declares itself lost and an image comes with the update, particles are injected around the
 image's Top-4 (`filter.inject_particles` per step, the paper's 1000; with
-`filter.inject_while_relocalising`, at every step until it tracks again). With a bundle exported with a
+`filter.inject_while_relocalising`, the default, at every step until it tracks again). With
+`filter.scan_check.pool` (10 by default) the four are not retrieval's first four but the four of its
+Top-pool that fit the update's scan best (`pipeline.runtime.scancheck`), at their best-fitting pose;
+`filter.challenge` (off) also tests a tracked belief against the camera. With a bundle exported with a
 sequence model and `filter.relocalise_with` `auto` (the default: `both` with a sequence model, `image`
 without), `both` or `sequence`, every frame also goes into a ring buffer (`pipeline.runtime.sequence`);
 when the filter is declared lost the buffer keeps only the frames since the kidnap rule started counting,
