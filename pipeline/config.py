@@ -158,16 +158,26 @@ class ScanCheckConfig(Strict):
 
 
 class ChallengeConfig(Strict):
-    """While tracking, the camera keeps testing the belief: a retrieved pose far from it that fits the scan
-    better gets a few particles, so a kidnapping the laser cannot see (a twin of the place fits it) is
-    found when the twin stops fitting."""
+    """While tracking, the camera keeps testing the belief (`pipeline.runtime.scancheck.Rivals`): a
+    retrieved pose far from it that fits the scan better at several checks in a row, followed with
+    odometry in between, gets particles, so a kidnapping the laser cannot see (a twin of the place fits
+    the scans) is found. Office, 200 kidnapping replays: 181 recovered within 15 steps without it, 191
+    with every 2 / confirm 4, at the same accuracy once converged (0.047 / 0.048 m)."""
 
-    every: int = Field(0, ge=0, description="test every this many tracking updates that come with an image "
-                       "(each costs one retrieval); 0: off (seed 000: the camera is used only when lost)")
-    particles: int = Field(250, ge=1, description="particles injected around each challenger")
+    every: int = Field(2, ge=0, description="test every this many tracking updates that come with an image "
+                       "(each test costs one single-image retrieval); 0: off (seed 000: the camera is used only "
+                       "when the filter is lost)")
+    pool: int = Field(10, ge=1, description="the image's Top-pool retrieved poses are the candidate challengers "
+                      "(checked with scan_check.samples perturbations each)")
+    particles: int = Field(250, ge=1, description="particles injected around each confirmed challenger")
+    share: float | None = Field(None, gt=0, lt=1, description="the share of the belief a confirmed challenger's "
+                                "particles hold together (null: the mean weight each, as an injection while lost)")
     min_distance_m: float = Field(3.0, gt=0, description="a challenger is a checked pose this far from the estimate")
     margin: float = Field(0.0, ge=0, description="... whose best fit beats the estimate's by this much, per beam "
                           "(log-likelihood)")
+    confirm: int = Field(4, ge=1, description="... at this many tests in a row, followed with odometry in between "
+                         "(one scan can favour a far pose by chance: people in front of the laser). Office: 1 "
+                         "tracked twins (mean error 0.13 m), 4 did not")
 
 
 class FilterConfig(Strict):
@@ -229,8 +239,6 @@ class FilterConfig(Strict):
     def _counts(self) -> FilterConfig:
         if self.min_particles > self.max_particles:
             raise ValueError(f"min_particles {self.min_particles} > max_particles {self.max_particles}")
-        if self.challenge.every and not self.scan_check.pool:
-            raise ValueError("challenge.every needs scan_check.pool > 0: challengers are checked against the scan")
         return self
 
 

@@ -112,16 +112,20 @@ class AdaptiveMCL:
         self._reset(self.map.sample_regions(cell_region, weights, n or self.cfg.max_particles, self.rng),
                     FilterState.RELOCALISING)
 
-    def inject(self, poses, weights=None, n: int | None = None, std_theta=None) -> int:
+    def inject(self, poses, weights=None, n: int | None = None, std_theta=None, share: float | None = None) -> int:
         """Add n particles drawn around candidate poses (the paper: 1000 per step while lost).
 
         The set grows by n up to max_particles; beyond that the lightest old particles make room. New
-        particles get the mean weight, so the next scan decides between them and the old hypotheses.
+        particles get the mean weight, so the next scan decides between them and the old hypotheses;
+        with `share` (0 < share < 1) they hold that share of the belief together instead, a hypothesis
+        the scans must confirm before it can take over.
         """
         n = min(n if n is not None else self.cfg.inject_particles, self.cfg.max_particles)
         if n <= 0:
             return 0
-        return self._add_particles(self._around(poses, weights, n, std_theta))
+        if share is not None and not 0.0 < share < 1.0:
+            raise ValueError(f"share {share} is not in (0, 1)")
+        return self._add_particles(self._around(poses, weights, n, std_theta), share)
 
     def inject_regions(self, cell_region: np.ndarray, weights, n: int | None = None) -> int:
         """Add n particles spread over labelled parts of the free space (an area prior), as `inject` does."""
@@ -130,15 +134,19 @@ class AdaptiveMCL:
             return 0
         return self._add_particles(self.map.sample_regions(cell_region, weights, n, self.rng))
 
-    def _add_particles(self, new: np.ndarray) -> int:
+    def _add_particles(self, new: np.ndarray, share: float | None = None) -> int:
         n = len(new)
         room = self.cfg.max_particles - n
         if len(self.particles) > room:
             keep = np.argsort(-self.log_w, kind="stable")[:room]
             self.particles, self.log_w = self.particles[keep], self.log_w[keep]
-        mean_w = logsumexp(self.log_w) - math.log(max(len(self.log_w), 1)) if len(self.log_w) else 0.0
+        if share is None or not len(self.log_w):
+            new_w = logsumexp(self.log_w) - math.log(max(len(self.log_w), 1)) if len(self.log_w) else 0.0
+        else:  # the new particles hold `share` of the belief together, the old ones the rest
+            self.log_w = self.log_w - logsumexp(self.log_w) + math.log1p(-share)
+            new_w = math.log(share / n)
         self.particles = np.vstack([self.particles, new])
-        self.log_w = np.r_[self.log_w, np.full(n, mean_w)]
+        self.log_w = np.r_[self.log_w, np.full(n, new_w)]
         self.log_w -= logsumexp(self.log_w)
         if self.state == FilterState.LOST:
             self.state = FilterState.RELOCALISING

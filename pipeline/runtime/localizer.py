@@ -12,13 +12,16 @@ image's Top-4 (`filter.inject_particles` per step, the paper's 1000; with
 `filter.inject_while_relocalising`, the default, at every step until it tracks again). With
 `filter.scan_check.pool` (10 by default) the four are not retrieval's first four but the four of its
 Top-pool that fit the update's scan best (`pipeline.runtime.scancheck`), at their best-fitting pose;
-`filter.challenge` (off) also tests a tracked belief against the camera. With a bundle exported with a
-sequence model and `filter.relocalise_with` `auto` (the default: `both` with a sequence model, `image`
+while the filter tracks, `filter.challenge` (every 2nd update with an image) checks the image's Top-10
+against the scan beside the estimate, and a far pose that fits better at several tests in a row
+(`pipeline.runtime.scancheck.Rivals`) gets particles: a kidnapping the laser cannot see. With a bundle
+exported with a sequence model and `filter.relocalise_with` `auto` (the default: `both` with a sequence model, `image`
 without), `both` or `sequence`, every frame also goes into a ring buffer (`pipeline.runtime.sequence`);
 when the filter is declared lost the buffer keeps only the frames since the kidnap rule started counting,
 and once it holds `length` frames their sequence's Top-4 are injected at every step until the filter
 tracks again (seed 000 section 3.3), headings spread by `filter.sequence_heading_std_deg`; `both` also
-injects the single image's Top-4 at the step the filter declares itself lost, `sequence` does not.
+injects the single image's Top-4 from the step the filter declares itself lost (both sources' Top-pool
+checked together once the sequence is ready), `sequence` does not.
 A bundle exported with an area prior (`--prior`, seed 001; `pipeline.runtime.areaprior`) can instead
 start the filter over the free space of the first image's most probable (room, area) classes
 (`filter.seed_with: area_prior`), and with `filter.inject_areas` also inject over them once when lost.
@@ -116,6 +119,9 @@ class Localizer:
         self._was_lost = False
         self._confirmed = 0
         self._tracking_images = 0  # tracking updates with an image, for filter.challenge.every
+        from pipeline.runtime.scancheck import Rivals
+
+        self._rivals = Rivals()
         if getattr(self, "sequence", None) is not None:
             self.sequence.keep_last(0)
 
@@ -205,29 +211,20 @@ class Localizer:
         return out, np.concatenate([sp[: len(c)] for sp, c in zip(spreads, cands, strict=True)])
 
     def _challenge(self, image, scan, estimate: np.ndarray) -> np.ndarray | None:
-        """Test the tracked belief against the image (`filter.challenge`): the image's Top-pool and the
-        estimate are checked against the scan alike; each pool pose at least min_distance_m from the
-        estimate that fits better than the estimate by margin gets `particles` particles. Returns the
-        challengers (K, 4: x, y, theta, weight) or None."""
-        from pipeline.runtime.scancheck import check_candidates
-
+        """Test the tracked belief against the image (`filter.challenge`, `scancheck.Rivals`): the image's
+        Top-pool, the rivals so far and the estimate are checked against the scan alike; a pose at least
+        min_distance_m from the estimate that has fitted better by margin at `confirm` checks in a row
+        gets `particles` particles. Returns those (K, 4: x, y, theta, weight) or None."""
         fcfg = self.filter_config
-        ch, sc = fcfg.challenge, fcfg.scan_check
-        pool = np.vstack([np.asarray(estimate, dtype=np.float64)[None], self.retrieved(image)[: sc.pool]])
-        checked = check_candidates(self.filter.sensor, self.map, pool, scan, keep=len(pool), samples=sc.samples,
-                                   std_xy=fcfg.init_std_xy, std_theta=np.radians(fcfg.init_std_theta_deg),
-                                   rng=self.filter.rng)
-        if checked is None:
+        ch = fcfg.challenge
+        won = self._rivals.check(self.filter.sensor, self.map, estimate, self.retrieved(image)[: ch.pool],
+                                 scan, samples=fcfg.scan_check.samples, std_xy=fcfg.init_std_xy,
+                                 std_theta=np.radians(fcfg.init_std_theta_deg), min_distance_m=ch.min_distance_m,
+                                 margin=ch.margin, confirm=ch.confirm, rng=self.filter.rng)
+        if not len(won):
             return None
-        beams = max(self.filter.sensor.beams(scan)[0].size, 1)
-        own = float(checked.log_likelihood[checked.rank == 0][0])
-        far = np.hypot(*(checked.poses[:, :2] - np.asarray(estimate)[:2]).T) >= ch.min_distance_m
-        better = far & (checked.rank > 0) & ((checked.log_likelihood - own) / beams > ch.margin)
-        if not better.any():
-            return None
-        poses = checked.poses[better]
-        self.filter.inject(poses, np.ones(len(poses)), n=ch.particles * len(poses))
-        return np.column_stack([poses, np.full(len(poses), 1.0 / len(poses))])
+        self.filter.inject(won, np.ones(len(won)), n=ch.particles * len(won), share=ch.share)
+        return np.column_stack([won, np.full(len(won), 1.0 / len(won))])
 
     def scan(self, ranges) -> object:
         from pipeline.runtime.sensor import Scan
@@ -302,12 +299,16 @@ class Localizer:
                                            self.area_prior.weights(self.area_prior.probabilities(image)))
                 source = "image+area_prior" if source == "image" else (source or "area_prior")
         res = self.filter.update(odometry, scan)
-        if (res.updated and res.state == FilterState.TRACKING and image is not None and scan is not None
-                and not sources_now and not self.awaiting_sequence and self.filter_config.challenge.every):
-            self._tracking_images += 1
-            if self._tracking_images % self.filter_config.challenge.every == 0:
-                cands = self._challenge(image, scan, res.pose)
-                source = "challenge" if cands is not None else None
+        if self.filter_config.challenge.every and res.updated:
+            if res.state != FilterState.TRACKING or sources_now or self.awaiting_sequence:
+                self._rivals.clear()  # the belief is being rebuilt: nothing to challenge
+            self._rivals.move(odometry)
+            if (res.state == FilterState.TRACKING and image is not None and scan is not None and not sources_now
+                    and not self.awaiting_sequence):
+                self._tracking_images += 1
+                if self._tracking_images % self.filter_config.challenge.every == 0:
+                    cands = self._challenge(image, scan, res.pose)
+                    source = "challenge" if cands is not None else None
         return Estimate(res.pose, res.covariance, res.state.value, res.particles, res.updated, cands, source,
                         res.best_likelihood)
 

@@ -53,3 +53,64 @@ def check_candidates(sensor, lmap: LaserMap, retrieved: np.ndarray, scan, *, kee
     order = np.lexsort((np.arange(n), -score))[: min(keep, n)]
     flat = order * samples + best[order]
     return CheckedCandidates(poses[flat], order, score[order], res.relative_likelihood[flat])
+
+
+class Rivals:
+    """Poses that fit the scan better than a tracked estimate, followed with odometry until they have
+    done so at `confirm` checks in a row (`filter.challenge`).
+
+    One scan can favour a far pose by chance (people in front of the laser, a twin of the place that
+    fits one view better), and the filter's per-scan likelihood is confident enough to jump there in
+    one update; a pose that keeps fitting better as the robot moves is a kidnapping the laser could
+    not see. Each check scores the estimate, the rivals (moved by the odometry since) and the image's
+    retrieved poses alike (`check_candidates`); a rival that does not beat the estimate is dropped.
+    """
+
+    def __init__(self):
+        self.poses = np.zeros((0, 3))
+        self.hits = np.zeros(0, dtype=np.int64)
+        self._odom: np.ndarray | None = None
+
+    def clear(self) -> None:
+        self.poses, self.hits = np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+
+    def move(self, odom) -> None:
+        """Apply the odometry since the last call to every rival (as the robot moved, so would they)."""
+        from pipeline.runtime.motion import compose_odometry, odometry_delta
+
+        odom = np.asarray(odom, dtype=np.float64).reshape(3)
+        if self._odom is not None and len(self.poses):
+            self.poses = compose_odometry(self.poses, *odometry_delta(self._odom, odom))
+        self._odom = odom
+
+    def check(self, sensor, lmap: LaserMap, estimate, retrieved: np.ndarray, scan, *, samples: int, std_xy: float,
+              std_theta: float, min_distance_m: float, margin: float, confirm: int,
+              rng: np.random.Generator) -> np.ndarray:
+        """(K, 3) the rivals confirmed by this check (removed from the list); updates the others."""
+        estimate = np.asarray(estimate, dtype=np.float64)[:3]
+        m = len(self.poses)
+        pool = np.vstack([estimate[None], self.poses, np.asarray(retrieved, dtype=np.float64)[:, :3]])
+        got = check_candidates(sensor, lmap, pool, scan, keep=len(pool), samples=samples, std_xy=std_xy,
+                               std_theta=std_theta, rng=rng)
+        if got is None:
+            return np.zeros((0, 3))
+        beams = max(sensor.beams(scan)[0].size, 1)
+        own = float(got.log_likelihood[got.rank == 0][0])
+        far = np.hypot(*(got.poses[:, :2] - estimate[:2]).T) >= min_distance_m
+        wins = far & (got.rank > 0) & ((got.log_likelihood - own) / beams > margin)
+        hits = np.zeros(len(pool), dtype=np.int64)
+        hits[1:m + 1] = self.hits
+        poses, counts = [], []
+        # Rivals first (most wins first), then new poses by fit: a pose near one kept already is that one,
+        # so a rival keeps its count at its best-fitting pose even when a retrieved pose lands beside it.
+        order = np.lexsort((np.arange(int(wins.sum())), -hits[got.rank[wins]]))
+        for rank, pose in zip(got.rank[wins][order], got.poses[wins][order], strict=True):
+            if any(np.hypot(*(pose[:2] - p[:2])) < 2 * std_xy for p in poses):
+                continue
+            poses.append(pose)
+            counts.append(hits[rank] + 1)
+        poses = np.asarray(poses).reshape(-1, 3)
+        counts = np.asarray(counts, dtype=np.int64)
+        done = counts >= confirm
+        self.poses, self.hits = poses[~done], counts[~done]
+        return poses[done]

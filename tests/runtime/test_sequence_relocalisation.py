@@ -207,8 +207,8 @@ def test_export_refuses_a_sequence_model_whose_frames_were_encoded_otherwise(mic
 
 
 def test_a_tracked_twin_is_challenged_by_the_image_and_the_truth_left_alone(micro_sequence_bundle):
-    """filter.challenge: a retrieved pose far from a wrong estimate that fits the scan gets particles;
-    with the estimate right, poses that fit worse get none."""
+    """filter.challenge: a retrieved pose far from a wrong estimate that keeps fitting the scan better gets
+    particles; with the estimate right, poses that fit worse get none."""
     from pipeline.evaluation.replay import load_run
     from pipeline.runtime.localizer import Localizer
 
@@ -226,6 +226,8 @@ def test_a_tracked_twin_is_challenged_by_the_image_and_the_truth_left_alone(micr
     loc.retrieved = lambda image: np.vstack([far[1:], truth + [0.2, -0.1, 0.1]])
     loc.filter.init_pose(far[0])
     before = len(loc.filter.particles)
+    for _ in range(fcfg.challenge.confirm - 1):  # not before it has won `confirm` checks in a row
+        assert loc._challenge("frame", scan, far[0]) is None and len(loc.filter.particles) == before
     got = loc._challenge("frame", scan, far[0])
     assert got is not None
     assert np.min(np.hypot(*(got[:, :2] - truth[:2]).T)) < 1.0
@@ -234,4 +236,6 @@ def test_a_tracked_twin_is_challenged_by_the_image_and_the_truth_left_alone(micr
 
     loc.retrieved = lambda image: far[1:]
     loc.filter.init_pose(truth)
-    assert loc._challenge("frame", scan, truth) is None
+    for _ in range(fcfg.challenge.confirm + 1):
+        assert loc._challenge("frame", scan, truth) is None
+    assert len(loc._rivals.poses) == 0
