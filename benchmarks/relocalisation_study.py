@@ -56,6 +56,27 @@ def with_changes(cfg, changes: dict):
     return FilterConfig.model_validate(raw)
 
 
+def print_check_cost(loc, run, data: Path) -> None:
+    """What the runtime pays per check of retrieved poses against a scan (no cache: as a robot runs it)."""
+    import numpy as np
+
+    from pipeline.machine import median_ms
+    from pipeline.runtime.scancheck import check_candidates
+
+    t = min(10, len(run) - 1)
+    image, scan = data / run.image_ids[t], loc.scan(run.ranges[t])
+    pool = loc.retrieved(image)
+    sc = loc.filter_config.scan_check
+    print("| what | ms (median of 20) |\n|---|---|")
+    print(f"| single-image retrieval (detector + Top-50 + RPA) | {median_ms(lambda: loc.retrieved(image), 20):.1f} |")
+    for n in (4, 10, 20, 50):
+        ms = median_ms(lambda n=n: check_candidates(loc.filter.sensor, loc.map, pool[:n], scan, keep=4,
+                                                    samples=sc.samples, std_xy=0.5, std_theta=np.radians(15),
+                                                    rng=np.random.default_rng(0)), 20)
+        print(f"| scan check of {n} poses x {sc.samples} samples | {ms:.2f} |")
+    print()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--bundle", type=Path, required=True)
@@ -79,6 +100,7 @@ def main() -> None:
     variants = [parse_variant(v) for v in args.variant]
     methods = args.methods.split(",")
     print(f"\nbundle {args.bundle}; {len(runs)} query runs x {args.trials} trials\n")
+    print_check_cost(loc, runs[0], args.data)
     print("| variant | method | converged | median step | p90 global | recovered | within 15 / 40 | "
           "median / p90 steps | within 15 and 10 cm | mean error, converged | update ms | wall s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
