@@ -17,7 +17,9 @@ Every method gets the same runs, seeds (filter.seed .. + evaluate.trials - 1) an
 settings:
 
   proposed    the bundle's Localizer: the first frame's Top-4 retrieved poses (4:3:2:1) seed KLD-AMCL,
-              the current frame's Top-4 are injected while the filter is lost
+              the current frame's Top-4 are injected while the filter is lost (with the bundle's
+              filter.yaml: checked against the scan, with the sequence's, the camera challenging
+              a tracked belief)
   amcl        the same filter started uniform, no camera ("without image-based localization")
   mcl         fixed-count MCL (filter.max_particles, the paper's 5000), uniform start
   mixture     mixture MCL, uniform start

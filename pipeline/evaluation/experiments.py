@@ -7,7 +7,8 @@ method of the paper's figures the same inputs, seeds and filter settings (the bu
 - `proposed`: the bundle's Localizer as the robot runs it (its filter.yaml): the first frame's Top-4
   retrieved poses (4:3:2:1) seed KLD-AMCL; once lost, the current frame's Top-4 are injected and, with a
   sequence model in the bundle (`filter.relocalise_with` auto or both), so are the Top-4 of the last
-  `length` frames at every step until the filter tracks again.
+  `length` frames at every step until the filter tracks again (by default checked against the scan,
+  `filter.scan_check`, and challenged while tracking, `filter.challenge`).
 - `image_reloc` and `sequence` (bundles with a sequence model): the same, re-localizing from the single
   image only, or from the sequence only (seed 000 section 3.3, the paper's Figure 12 "proposed").
 - `amcl`: the same filter started uniform, no camera (Figure 8's "without image-based localization";
