@@ -15,8 +15,8 @@ Top-pool that fit the update's scan best (`pipeline.runtime.scancheck`), at thei
 while the filter tracks, `filter.challenge` (every 2nd update with an image) checks the image's Top-10
 against the scan beside the estimate, and a far pose that fits better at several tests in a row
 (`pipeline.runtime.scancheck.Rivals`) gets particles: a kidnapping the laser cannot see. With a bundle
-exported with a sequence model and `filter.relocalise_with` `auto` (the default: `both` with a sequence model, `image`
-without), `both` or `sequence`, every frame also goes into a ring buffer (`pipeline.runtime.sequence`);
+exported with a sequence model and `filter.relocalise_with` `auto` (the default: `both` with a sequence
+model, `image` without), `both` or `sequence`, every frame also goes into a ring buffer (`pipeline.runtime.sequence`);
 when the filter is declared lost the buffer keeps only the frames since the kidnap rule started counting,
 and once it holds `length` frames their sequence's Top-4 are injected at every step until the filter
 tracks again (seed 000 section 3.3), headings spread by `filter.sequence_heading_std_deg`; `both` also
@@ -46,7 +46,7 @@ class Estimate:
     n_particles: int
     updated: bool  # False when the filter held the update back (not enough travel)
     candidates: np.ndarray | None  # (K, 4) x, y, theta, weight when retrieval ran this step
-    source: str | None  # what seeded or injected: image, sequence, sequence+image, area_prior, image+area_prior
+    source: str | None  # what seeded or injected: image, sequence, sequence+image, challenge, area_prior, ...
     best_likelihood: float  # per-beam relative likelihood of the best particle, (0, 1]
 
 
