@@ -37,7 +37,7 @@ def table1(results: dict[str, list[Replay]], retrieve, data: Path, runs: list) -
         first = next(i for i, im in enumerate(run.image_ids) if im)
         cands = rep.rep.get("seed_candidates")
         if cands is None:  # seeded over areas (seed 001's prior): retrieval's own Top-4 for the table
-            from pipeline.runtime.localizer import weighted_candidates
+            from pipeline.retrieval.search import weighted_candidates
 
             cands = weighted_candidates(retrieve(Path(data) / run.image_ids[first]), (4.0, 3.0, 2.0, 1.0))
         s = (rep.kidnaps[0] - 1) if rep.kidnaps else len(rep.errors) - 1

@@ -140,10 +140,16 @@ def rerank(db: Database, first: np.ndarray, query_regions: np.ndarray) -> tuple[
     return np.asarray(first)[order], scores
 
 
-def candidates_from(db: Database, ranked: np.ndarray, weights: tuple[float, ...]) -> np.ndarray:
-    k = min(len(weights), len(ranked))
+def weighted_candidates(poses: np.ndarray, weights) -> np.ndarray:
+    """(K, 4) x, y, theta, weight: the first K = len(weights) poses (fewer if there are fewer), weights
+    normalised."""
+    k = min(len(weights), len(poses))
     w = np.asarray(weights[:k], dtype=np.float64)
-    return np.column_stack([db.poses[ranked[:k]], w / w.sum()])
+    return np.column_stack([np.asarray(poses)[:k, :3], w / w.sum()])
+
+
+def candidates_from(db: Database, ranked: np.ndarray, weights: tuple[float, ...]) -> np.ndarray:
+    return weighted_candidates(db.poses[np.asarray(ranked)[: len(weights)]], weights)
 
 
 def retrieve(db: Database, index, query_ipa: np.ndarray, query_regions: np.ndarray | None, *, top_n: int = 50,

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from pipeline.retrieval.search import weighted_candidates
 from pipeline.runtime.bundle import BundleError, open_bundle
 
 
@@ -176,10 +177,6 @@ class Localizer:
             return "both" if self.sequence is not None else "image"
         return mode
 
-    def sequence_candidates(self) -> np.ndarray:
-        """(K, 4) x, y, theta, weight: the Top-K database windows of the buffered frames."""
-        return self.sequence.candidates(tuple(self.retrieval["candidate_weights"]))
-
     def proposals(self, sources: tuple[str, ...], image, scan) -> tuple[np.ndarray, np.ndarray]:
         """Where particles go: (K, 4) x, y, theta, weight and (K,) each one's heading spread (radians).
 
@@ -311,10 +308,3 @@ class Localizer:
                     source = "challenge" if cands is not None else None
         return Estimate(res.pose, res.covariance, res.state.value, res.particles, res.updated, cands, source,
                         res.best_likelihood)
-
-
-def weighted_candidates(poses: np.ndarray, weights) -> np.ndarray:
-    """(K, 4): the first K = len(weights) poses (fewer if there are fewer) with their weights normalised."""
-    k = min(len(weights), len(poses))
-    w = np.asarray(weights[:k], dtype=np.float64)
-    return np.column_stack([np.asarray(poses)[:k, :3], w / w.sum()])

@@ -106,6 +106,6 @@ class SequenceRelocaliser:
     def candidates(self, weights=(4.0, 3.0, 2.0, 1.0)) -> np.ndarray:
         """(K, 4) x, y, theta, weight of the buffer's Top-K database windows (K = len(weights)), one candidate
         per database window; weights normalised."""
-        poses = self.ranked(len(weights))
-        w = np.asarray(weights[: len(poses)], dtype=np.float64)
-        return np.column_stack([poses, w / w.sum()])
+        from pipeline.retrieval.search import weighted_candidates
+
+        return weighted_candidates(self.ranked(len(weights)), weights)
