@@ -72,8 +72,8 @@ def print_check_cost(loc, run, data: Path) -> None:
     for n in (4, 10, 20, 50):
         ms = median_ms(lambda n=n: check_candidates(loc.filter.sensor, loc.map, pool[:n], scan, keep=4,
                                                     samples=sc.samples, std_xy=0.5, std_theta=np.radians(15),
-                                                    rng=np.random.default_rng(0)), 20)
-        print(f"| scan check of {n} poses x {sc.samples} samples | {ms:.2f} |")
+                                                    rng=np.random.default_rng(0), rounds=sc.rounds), 20)
+        print(f"| scan check of {n} poses x {sc.samples} samples x {sc.rounds} rounds | {ms:.2f} |")
     print()
 
 

@@ -3,7 +3,8 @@
 "Converged at s" means the position error stays below `threshold_m` for `hold` consecutive steps from s
 (or to the end of the run when fewer remain). Accuracy is measured over the steps where the filter is
 converged: from the first convergence on, minus each kidnapping's interval until it recovers. A
-kidnapping's final error is the median error over the last `hold` steps before the next one (or the end).
+kidnapping's final error is the median error over the last `hold` steps before the next one (or the end),
+counting only steps from its recovery on.
 """
 
 from __future__ import annotations
@@ -38,9 +39,11 @@ def replay_metrics(errors: np.ndarray, kidnaps: list[int], particles: np.ndarray
         back = first_settled(errors, k, threshold_m, hold)
         recoveries.append(None if back is None else back - k)
         mask[k: (back if back is not None else len(errors))] = False
-        # Where the filter ends up before the next kidnapping: the median of that segment's last `hold` steps.
+        # Where the filter ends up before the next kidnapping: the median of that segment's last `hold` steps,
+        # from the recovery on (a kidnapping a few steps before the end must not count its search as final).
         end = kidnaps[i + 1] if i + 1 < len(kidnaps) else len(errors)
-        finals.append(round(float(np.median(errors[max(k, end - hold):end])), 4) if end > k else None)
+        start = max(k if back is None else back, end - hold)
+        finals.append(round(float(np.median(errors[start:end])), 4) if end > start else None)
     good = errors[mask]
     ms = np.asarray(update_ms)[np.asarray(updated, bool)]
 

@@ -189,17 +189,20 @@ class Localizer:
         weights = self.retrieval["candidate_weights"]
         sc, fcfg = self.filter_config.scan_check, self.filter_config
         k = max(sc.pool, len(weights))
-        pools, spreads = [], []
+        pools, spreads, priors = [], [], []
         for source in sources:
             pool = self.sequence.ranked(k) if source == "sequence" else self.retrieved(image)
             deg = fcfg.sequence_heading_std_deg if source == "sequence" else None
             pools.append(pool[: sc.pool] if sc.pool else pool)
             spreads.append(np.full(len(pools[-1]), np.radians(deg if deg is not None else fcfg.init_std_theta_deg)))
+            priors.append(-sc.rank_prior * np.log1p(np.arange(len(pools[-1]))))
         if sc.pool and scan is not None:
             pool, spread = np.vstack(pools), np.concatenate(spreads)
             checked = check_candidates(self.filter.sensor, self.map, pool, scan, keep=len(weights),
                                        samples=sc.samples, std_xy=fcfg.init_std_xy, std_theta=spread,
-                                       rng=self.filter.rng)
+                                       rng=self.filter.rng,
+                                       log_prior=np.concatenate(priors) if sc.rank_prior else None,
+                                       rounds=sc.rounds)
             if checked is not None:
                 return weighted_candidates(checked.poses, weights), spread[checked.rank]
         cands = [weighted_candidates(p, weights) for p in pools]
@@ -217,7 +220,8 @@ class Localizer:
         won = self._rivals.check(self.filter.sensor, self.map, estimate, self.retrieved(image)[: ch.pool],
                                  scan, samples=fcfg.scan_check.samples, std_xy=fcfg.init_std_xy,
                                  std_theta=np.radians(fcfg.init_std_theta_deg), min_distance_m=ch.min_distance_m,
-                                 margin=ch.margin, confirm=ch.confirm, rng=self.filter.rng)
+                                 margin=ch.margin, confirm=ch.confirm, rng=self.filter.rng,
+                                 rounds=fcfg.scan_check.rounds)
         if not len(won):
             return None
         self.filter.inject(won, np.ones(len(won)), n=ch.particles * len(won), share=ch.share)

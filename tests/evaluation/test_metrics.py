@@ -31,3 +31,13 @@ def test_final_error_of_each_kidnapping_is_the_median_before_the_next():
     err = np.r_[np.zeros(10), np.full(10, 5.0), np.full(5, 1.0), np.full(5, 0.2), np.full(10, 3.0)]
     m = replay_metrics(err, [10, 30], np.ones(40), np.zeros(40), np.ones(40, bool), threshold_m=0.5, hold=5)
     assert m["recovery_final_error_m"] == [0.2, 3.0]  # the last 5 steps before step 30, then before the end
+
+
+def test_final_error_of_a_late_kidnapping_counts_only_steps_after_its_recovery():
+    from pipeline.evaluation.metrics import replay_metrics
+
+    # Kidnapped 6 steps before the end, recovered 4 steps later: the search (9 m) is not where it ended up.
+    err = np.r_[np.zeros(20), np.full(4, 9.0), np.full(2, 0.05)]
+    m = replay_metrics(err, [20], np.ones(26), np.zeros(26), np.ones(26, bool), threshold_m=0.5, hold=10)
+    assert m["recovery_steps"] == [4]
+    assert m["recovery_final_error_m"] == [0.05]

@@ -71,6 +71,44 @@ def test_a_candidates_score_is_the_best_of_its_perturbations(world):
         assert score == pytest.approx(ll[rank].max(), rel=1e-9)
 
 
+def test_refinement_rounds_never_score_lower_and_close_in_on_the_truth(world):
+    """Round one draws what a single round draws (same generator), and each later round keeps the best so
+    far among its draws: every candidate's score can only rise; the truth's pose ends up closer."""
+    lmap, sensor, scanner, stops = world
+    truth = np.array([*stops[5, :2], 0.4])
+    scan = scan_at(scanner, truth)
+    retrieved = np.vstack([truth + [0.35, -0.3, np.radians(12)], [*stops[14, :2], 2.0], [*stops[2, :2], -1.0]])
+    kw = dict(keep=3, samples=24, std_xy=0.5, std_theta=np.radians(15))
+    one = check_candidates(sensor, lmap, retrieved, scan, rng=np.random.default_rng(3), rounds=1, **kw)
+    four = check_candidates(sensor, lmap, retrieved, scan, rng=np.random.default_rng(3), rounds=4, **kw)
+    by_rank = {r: s for r, s in zip(one.rank, one.log_likelihood, strict=True)}
+    for rank, score in zip(four.rank, four.log_likelihood, strict=True):
+        assert score >= by_rank[rank] - 1e-9
+    i1, i4 = int(np.nonzero(one.rank == 0)[0][0]), int(np.nonzero(four.rank == 0)[0][0])
+    assert np.hypot(*(four.poses[i4, :2] - truth[:2])) <= np.hypot(*(one.poses[i1, :2] - truth[:2]))
+    assert np.hypot(*(four.poses[i4, :2] - truth[:2])) < 0.15
+    # The scores are the sensor's own at the returned poses.
+    np.testing.assert_allclose(four.log_likelihood, sensor.evaluate(four.poses, scan).log_likelihood, rtol=1e-6)
+
+
+def test_rank_prior_orders_equal_fits_by_retrieval_and_yields_to_a_clearly_better_fit(world):
+    lmap, sensor, scanner, stops = world
+    truth = np.array([*stops[6, :2], -0.8])
+    scan = scan_at(scanner, truth)
+    kw = dict(keep=3, samples=1, std_xy=0.5, std_theta=0.2)  # one sample: the retrieved pose itself
+    # The same pose three times fits identically; the prior alone orders them, by retrieval rank.
+    same = np.repeat(truth[None], 3, axis=0)
+    prior = -np.log1p(np.array([2.0, 0.0, 1.0]))
+    got = check_candidates(sensor, lmap, same, scan, rng=np.random.default_rng(0), log_prior=prior, **kw)
+    assert got.rank.tolist() == [1, 2, 0]
+    # A far pose ranked first by retrieval does not beat the truth's fit for a log(2) prior.
+    far = np.vstack([[*stops[15, :2], 1.0], truth])
+    got = check_candidates(sensor, lmap, far, scan, rng=np.random.default_rng(0), log_prior=-np.log1p([0.0, 1.0]),
+                           **kw)
+    assert got.rank[0] == 1
+    assert got.log_likelihood[0] - got.log_likelihood[1] > np.log(2.0)
+
+
 def test_without_usable_beams_retrieval_order_stands(world):
     lmap, sensor, scanner, stops = world
     empty = Scan(np.full(271, np.inf), scanner.angle_min, scanner.angle_increment, RANGE_MAX)
