@@ -198,7 +198,7 @@ class AdaptiveMCL:
 
     def _measure(self, scan: Scan) -> None:
         c = self.cfg
-        res = self.sensor.evaluate(self.particles, scan)
+        res = (self.sensor.evaluate_skipping if c.sensor.beam_skip else self.sensor.evaluate)(self.particles, scan)
         if res.beams_used == 0:
             return
         prior = self.weights

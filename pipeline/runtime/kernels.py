@@ -49,21 +49,27 @@ def _field_sum_numba(poses, bx, by, field, inv_res, ox, oy, out):  # pragma: no 
         out[i] = acc
 
 
+def endpoint_cells(poses: np.ndarray, bx: np.ndarray, by: np.ndarray, shape: tuple[int, int], resolution: float,
+                   origin: tuple[float, float]) -> np.ndarray:
+    """(N, B) flat indices into a padded grid of `shape` of each pose's beam endpoints (clipped to the grid)."""
+    h2, w2 = shape
+    inv = 1.0 / resolution
+    c, s = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
+    gx = (poses[:, 0:1] - origin[0]) * inv + 1.0 + (c * bx - s * by) * inv
+    gy = (poses[:, 1:2] - origin[1]) * inv + 1.0 + (s * bx + c * by) * inv
+    ix = np.clip(np.floor(gx), 0, w2 - 1).astype(np.int64)
+    iy = np.clip(np.floor(gy), 0, h2 - 1).astype(np.int64)
+    return iy * w2 + ix
+
+
 def field_sum_numpy(poses: np.ndarray, bx: np.ndarray, by: np.ndarray, field: np.ndarray, resolution: float,
                     origin: tuple[float, float], chunk: int = 256) -> np.ndarray:
     """Sum over beams of `field` (padded grid) at each pose's beam endpoints: the numpy twin."""
-    h2, w2 = field.shape
-    inv = 1.0 / resolution
     out = np.empty(len(poses), dtype=np.float64)
     flat = field.ravel()
     for k in range(0, len(poses), chunk):
-        p = poses[k:k + chunk]
-        c, s = np.cos(p[:, 2:3]), np.sin(p[:, 2:3])
-        gx = (p[:, 0:1] - origin[0]) * inv + 1.0 + (c * bx - s * by) * inv
-        gy = (p[:, 1:2] - origin[1]) * inv + 1.0 + (s * bx + c * by) * inv
-        ix = np.clip(np.floor(gx), 0, w2 - 1).astype(np.int64)
-        iy = np.clip(np.floor(gy), 0, h2 - 1).astype(np.int64)
-        out[k:k + chunk] = flat[iy * w2 + ix].sum(axis=1, dtype=np.float64)
+        cells = endpoint_cells(poses[k:k + chunk], bx, by, field.shape, resolution, origin)
+        out[k:k + chunk] = flat[cells].sum(axis=1, dtype=np.float64)
     return out
 
 

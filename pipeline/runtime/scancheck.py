@@ -4,13 +4,16 @@ Retrieval hands the filter four poses; on a quasi-symmetric floor the right plac
 fifth or twentieth (office: recall@4 0.46, recall@50 0.74), so four poses waste the injection on twins
 while the truth sits further down the list. The scan that comes with the same update can tell many of
 them apart: each of the Top-N retrieved poses is perturbed (`samples` poses around it, Gaussian, kept
-in free space), every perturbation is scored by the filter's own sensor model, and a candidate's score
-is its best perturbation's log-likelihood. The best `keep` candidates, at their best-fitting pose, are
-what gets injected (weighted 4:3:2:1 as before). The filter still decides between them over the next
-updates: a scan that fits a twin as well as the truth leaves both in.
+in free space; then again around the best so far at half the spread, `rounds` times), every
+perturbation is scored by the filter's own sensor model, and a candidate's score is its best
+perturbation's log-likelihood (plus a prior from its retrieval rank, when given). The best `keep`
+candidates, at their best-fitting pose, are what gets injected (weighted 4:3:2:1 as before). The
+filter still decides between them over the next updates: a scan that fits a twin as well as the truth
+leaves both in.
 
 This is retrieval followed by geometric verification (place-recognition practice) with the filter's
-likelihood as the verifier; the cost is one sensor evaluation of N x samples poses, once per injection.
+likelihood as the verifier; the cost is `rounds` sensor evaluations of N x samples poses, once per
+injection.
 """
 
 from __future__ import annotations

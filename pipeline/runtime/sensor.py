@@ -104,6 +104,26 @@ class LikelihoodFieldModel:
         rel = np.exp(total / len(r) - self.log_best)
         return SensorResult(total / self.cfg.temperature, rel, len(r))
 
+    def evaluate_skipping(self, particles: np.ndarray, scan: Scan) -> SensorResult:
+        """`evaluate` with nav2 amcl's beam skipping (`cfg.beam_skip_*`): a beam whose endpoint lies within
+        beam_skip_distance of an obstacle for fewer than beam_skip_threshold of the particles is left out of
+        the weights (it most likely hit something the map does not have), unless beam_skip_error_threshold of
+        the beams would go (then the belief, not the beams, is wrong). The relative likelihood, which the
+        kidnap rule reads, still scores every beam: skipping must not hide a kidnapping."""
+        r, a = self.beams(scan)
+        n = len(particles)
+        if len(r) == 0:
+            return SensorResult(np.zeros(n), np.ones(n), 0)
+        cells = kernels.endpoint_cells(laser_poses(particles, self.base_from_laser), r * np.cos(a), r * np.sin(a),
+                                       self.field.shape, self.map.resolution, (self.map.origin_x, self.map.origin_y))
+        logp = self.field.ravel()[cells].astype(np.float64)
+        agree = (self.map.distance_padded.ravel()[cells] < self.cfg.beam_skip_distance).mean(axis=0)
+        keep = agree >= self.cfg.beam_skip_threshold
+        if 1.0 - keep.mean() >= self.cfg.beam_skip_error_threshold:
+            keep[:] = True
+        rel = np.exp(logp.sum(axis=1) / len(r) - self.log_best)
+        return SensorResult(logp[:, keep].sum(axis=1) / self.cfg.temperature, rel, int(keep.sum()))
+
 
 _TABLES: dict[tuple, tuple[np.ndarray, np.ndarray, float]] = {}
 

@@ -91,6 +91,41 @@ def test_invalid_readings_are_skipped_and_an_empty_scan_is_neutral(lmap):
     assert empty.beams_used == 0 and np.all(empty.log_likelihood == 0)
 
 
+def test_beam_skipping_leaves_out_what_the_map_lacks_and_only_that(lmap):
+    cfg = SensorModelConfig(beam_skip=True)
+    model = LikelihoodFieldModel(lmap, cfg, range_max=10.0)
+    angles = np.linspace(-2.3, 2.3, 46)
+    truth = np.array([[0.5, 0.0, 0.3]])
+    ranges = kernels.cast_rays(truth, angles, lmap.occupied, kernels.safe_steps(lmap.occupied), lmap.resolution,
+                               (lmap.origin_x, lmap.origin_y), 10.0)[0]
+    rng = np.random.default_rng(0)
+    tracked = truth + rng.normal(0.0, [0.05, 0.05, 0.02], (300, 3))
+    scan = Scan(ranges, angles[0], angles[1] - angles[0], 10.0)
+    # Nothing in front of the laser: no beam is skipped, the weights are evaluate's.
+    plain, skipping = model.evaluate(tracked, scan), model.evaluate_skipping(tracked, scan)
+    assert skipping.beams_used == plain.beams_used == 46
+    np.testing.assert_allclose(skipping.log_likelihood, plain.log_likelihood, rtol=1e-6)
+    # A person 0.6 m in front blocks beams 20-25: those, and only those, are left out of the weights.
+    blocked = ranges.copy()
+    blocked[20:26] = 0.6
+    scan = Scan(blocked, angles[0], angles[1] - angles[0], 10.0)
+    got = model.evaluate_skipping(tracked, scan)
+    keep = np.ones(46, bool)
+    keep[20:26] = False
+    twin = model.evaluate(tracked, Scan(np.where(keep, blocked, np.nan), angles[0], angles[1] - angles[0], 10.0))
+    assert got.beams_used == 40
+    np.testing.assert_allclose(got.log_likelihood, twin.log_likelihood, rtol=1e-6)
+    # ... while the kidnap rule's relative likelihood still scores every beam.
+    np.testing.assert_allclose(got.relative_likelihood, model.evaluate(tracked, scan).relative_likelihood, rtol=1e-6)
+    # A belief spread over the room agrees with few beams: rather than skip most, it uses them all.
+    spread = lmap.sample_free(300, rng)
+    assert model.evaluate_skipping(spread, scan).beams_used == 46
+    np.testing.assert_allclose(model.evaluate_skipping(spread, scan).log_likelihood,
+                               model.evaluate(spread, scan).log_likelihood, rtol=1e-6)
+    with pytest.raises(ValueError, match="likelihood_field"):
+        SensorModelConfig(beam_skip=True, model="beam")
+
+
 def test_off_map_particles_get_finite_low_likelihoods(lmap):
     model = LikelihoodFieldModel(lmap, SensorModelConfig(), range_max=10.0)
     scan = Scan(np.full(60, 2.0), -2.0, 4.0 / 59, 10.0)
