@@ -182,8 +182,9 @@ class Localizer:
 
         From retrieval's Top-K of the image ("image") or of the buffered frames ("sequence"; with both,
         each source's Top-K at half weight), or, with `filter.scan_check.pool`, the K (K =
-        len(candidate_weights)) of the sources' Top-pool whose neighbourhood fits `scan` best, at their
-        best-fitting pose (`pipeline.runtime.scancheck`), weighted as retrieval's Top-K would be."""
+        len(candidate_weights)) of the sources' Top-pool whose neighbourhood fits `scan` best (refined in
+        `scan_check.rounds`, each source's rank as a prior: `scan_check.rank_prior`), at their best-fitting
+        pose (`pipeline.runtime.scancheck`), weighted as retrieval's Top-K would be."""
         from pipeline.runtime.scancheck import check_candidates
 
         weights = self.retrieval["candidate_weights"]
