@@ -201,9 +201,7 @@ class Localizer:
             pool, spread = np.vstack(pools), np.concatenate(spreads)
             checked = check_candidates(self.filter.sensor, self.map, pool, scan, keep=len(weights),
                                        samples=sc.samples, std_xy=fcfg.init_std_xy, std_theta=spread,
-                                       rng=self.filter.rng,
-                                       log_prior=np.concatenate(priors) if sc.rank_prior else None,
-                                       rounds=sc.rounds)
+                                       rng=self.filter.rng, log_prior=np.concatenate(priors), rounds=sc.rounds)
             if checked is not None:
                 return weighted_candidates(checked.poses, weights), spread[checked.rank]
         cands = [weighted_candidates(p, weights) for p in pools]
