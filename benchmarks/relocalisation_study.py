@@ -70,10 +70,10 @@ def print_check_cost(loc, run, data: Path) -> None:
     print("| what | ms (median of 20) |\n|---|---|")
     print(f"| single-image retrieval (detector + Top-50 + RPA) | {median_ms(lambda: loc.retrieved(image), 20):.1f} |")
     for n in (4, 10, 20, 50):
-        ms = median_ms(lambda n=n: check_candidates(loc.filter.sensor, loc.map, pool[:n], scan, keep=4,
+        ms = median_ms(lambda n=n: check_candidates(loc.verifier, loc.map, pool[:n], scan, keep=4,
                                                     samples=sc.samples, std_xy=0.5, std_theta=np.radians(15),
                                                     rng=np.random.default_rng(0), rounds=sc.rounds), 20)
-        print(f"| scan check of {n} poses x {sc.samples} samples x {sc.rounds} rounds | {ms:.2f} |")
+        print(f"| scan check of {n} poses x {sc.samples} samples x {sc.rounds} rounds ({sc.model} model) | {ms:.2f} |")
     print()
 
 

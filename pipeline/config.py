@@ -120,10 +120,17 @@ class SensorModelConfig(Strict):
     temperature: float = Field(
         1.0, ge=1.0, description="log-likelihoods are divided by this (beams are not independent; 1 = none)"
     )
-    beam_skip: bool = Field(False, description="likelihood field only (nav2: do_beamskip): in the filter's update, "
-                            "skip beams whose endpoint lies near an obstacle for fewer than beam_skip_threshold of "
-                            "the particles (people and moved chairs in front of the laser), unless that would skip "
-                            "beam_skip_error_threshold of them; the kidnap rule still scores every beam")
+    beam_skip: bool = Field(True, description="likelihood field only; the beam model explains short readings "
+                            "itself (nav2: do_beamskip, off there by default): in the filter's update, skip beams "
+                            "whose endpoint lies near an obstacle for fewer than beam_skip_threshold of the "
+                            "particles (people and moved chairs in front of the laser), unless that would skip "
+                            "beam_skip_error_threshold of them; the kidnap rule still scores every beam. Paper site: "
+                            "118 of 120 kidnappings within 15 steps and under 10 cm with it, 112 without (people "
+                            "drag a tracked pose along a corridor); office 194 / 197 of 200")
+    beam_skip_spread_m: float | None = Field(0.5, gt=0, description="skip only while the particles' position "
+                                             "std is under this (one settled belief); with several hypotheses, the "
+                                             "beams that only a minority agrees with are the evidence between them. "
+                                             "null: whatever the belief (nav2)")
     beam_skip_distance: float = Field(0.5, gt=0, description="m: an endpoint this near an obstacle agrees with the "
                                       "map (nav2: beam_skip_distance)")
     beam_skip_threshold: float = Field(0.3, gt=0, lt=1, description="share of particles a beam must agree with "
@@ -134,8 +141,9 @@ class SensorModelConfig(Strict):
 
     @model_validator(mode="after")
     def _beam_skip_model(self) -> SensorModelConfig:
-        if self.beam_skip and self.model != "likelihood_field":
-            raise ValueError("beam_skip needs model: likelihood_field (nav2 skips beams only there)")
+        if self.beam_skip and self.model != "likelihood_field" and "beam_skip" in self.model_fields_set:
+            raise ValueError("beam_skip needs model: likelihood_field (nav2 skips beams only there; the beam model "
+                             "explains short readings itself): set beam_skip: false")
         return self
 
 
@@ -181,6 +189,14 @@ class ScanCheckConfig(Strict):
                               "rank_prior * log(1 + retrieval rank) (a Zipf prior of retrieval's precision at "
                               "rank): where a twin fits the scan as well as the right place, the image's order "
                               "decides; 0: by the scan alone")
+    model: Literal["filter", "beam"] = Field("beam", description="the sensor model that scores checked poses "
+                                             "(and the challenge's): the filter's own, or the beam model (the "
+                                             "sensor settings, ray cast from sensor.ray_cast's table: about free "
+                                             "cells x table_angles x 2 B, built once per map and cached on disk), "
+                                             "which explains a person in front of the laser as a short reading "
+                                             "where the likelihood field scores a miss, and penalises a scan that "
+                                             "sees through a wall. Office, 200 kidnappings within 15 steps and "
+                                             "under 10 cm: 190 with the filter's likelihood field, 197 with beam")
 
 
 class ChallengeConfig(Strict):

@@ -198,7 +198,7 @@ class AdaptiveMCL:
 
     def _measure(self, scan: Scan) -> None:
         c = self.cfg
-        res = (self.sensor.evaluate_skipping if c.sensor.beam_skip else self.sensor.evaluate)(self.particles, scan)
+        res = (self.sensor.evaluate_skipping if self._skips_beams() else self.sensor.evaluate)(self.particles, scan)
         if res.beams_used == 0:
             return
         prior = self.weights
@@ -215,6 +215,19 @@ class AdaptiveMCL:
                                                          < c.kidnap.fast_slow_ratio)
         self._low_updates = self._low_updates + 1 if low else 0
         self._resample(scan)
+
+    def _skips_beams(self) -> bool:
+        """Beam skipping (`sensor.beam_skip`), while the belief is one settled cluster when
+        `sensor.beam_skip_spread_m` is set (checked on the particles as they are now, injections included)."""
+        s = self.cfg.sensor
+        if not s.beam_skip or s.model != "likelihood_field":
+            return False
+        if s.beam_skip_spread_m is None:
+            return True
+        w = self.weights
+        xy = self.particles[:, :2]
+        var = w @ (xy - w @ xy) ** 2
+        return bool(np.sqrt(var.sum()) <= s.beam_skip_spread_m)
 
     def _resample(self, scan: Scan) -> None:
         c = self.cfg

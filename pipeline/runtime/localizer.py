@@ -78,6 +78,8 @@ class Localizer:
         self.occupancy = read_map(root / "map" / "map.yaml")
         self.map = LaserMap.from_occupancy(self.occupancy, fcfg.sensor.max_distance)
         self.filter_config = fcfg
+        if fcfg.scan_check.model == "beam":
+            self.verifier  # noqa: B018 - its range table is built (or read from the cache) at load, not mid-run
         self.base_seed = fcfg.seed  # reset(seed=...) reseeds; replays count trials from this one
         self.reset()
         self.database = load_database(root / "db")
@@ -177,6 +179,21 @@ class Localizer:
             return "both" if self.sequence is not None else "image"
         return mode
 
+    @property
+    def verifier(self):
+        """The sensor model that scores checked poses (`filter.scan_check.model`): the filter's, or a beam
+        model on the same map and sensor settings (built once; its range table is cached on disk)."""
+        if self.filter_config.scan_check.model == "filter":
+            return self.filter.sensor
+        from pipeline.runtime.sensor import make_sensor_model
+
+        cfg = self.filter_config.sensor.model_copy(update={"model": "beam", "beam_skip": False})
+        key = cfg.model_dump_json()
+        if getattr(self, "_verifier_key", None) != key:
+            self._verifier = make_sensor_model(self.map, cfg, self.laser.range_max, self.laser.base_from_laser)
+            self._verifier_key = key
+        return self._verifier
+
     def proposals(self, sources: tuple[str, ...], image, scan) -> tuple[np.ndarray, np.ndarray]:
         """Where particles go: (K, 4) x, y, theta, weight and (K,) each one's heading spread (radians).
 
@@ -199,7 +216,7 @@ class Localizer:
             priors.append(-sc.rank_prior * np.log1p(np.arange(len(pools[-1]))))
         if sc.pool and scan is not None:
             pool, spread = np.vstack(pools), np.concatenate(spreads)
-            checked = check_candidates(self.filter.sensor, self.map, pool, scan, keep=len(weights),
+            checked = check_candidates(self.verifier, self.map, pool, scan, keep=len(weights),
                                        samples=sc.samples, std_xy=fcfg.init_std_xy, std_theta=spread,
                                        rng=self.filter.rng, log_prior=np.concatenate(priors), rounds=sc.rounds)
             if checked is not None:
@@ -216,7 +233,7 @@ class Localizer:
         gets `particles` particles. Returns those (K, 4: x, y, theta, weight) or None."""
         fcfg = self.filter_config
         ch = fcfg.challenge
-        won = self._rivals.check(self.filter.sensor, self.map, estimate, self.retrieved(image)[: ch.pool],
+        won = self._rivals.check(self.verifier, self.map, estimate, self.retrieved(image)[: ch.pool],
                                  scan, samples=fcfg.scan_check.samples, std_xy=fcfg.init_std_xy,
                                  std_theta=np.radians(fcfg.init_std_theta_deg), min_distance_m=ch.min_distance_m,
                                  margin=ch.margin, confirm=ch.confirm, rng=self.filter.rng,

@@ -172,3 +172,32 @@ def test_candidates_are_injected_when_lost_or_through_relocalisation(exported, w
     assert set(injected) <= expected
     assert len(injected) == sum(s in expected for s in states[1:])  # every such step with an image injects
     assert injected or not while_relocalising  # the seeded filter relocalises first, so this one injects
+
+
+def test_the_scan_checks_verifier_follows_the_config(exported):
+    from pipeline.evaluation.replay import load_run
+    from pipeline.runtime.localizer import Localizer
+    from pipeline.runtime.sensor import BeamModel, LikelihoodFieldModel
+
+    _, ing, _, _, bundle = exported
+    loc = Localizer.from_bundle(bundle, seed=0)
+    fcfg = loc.filter_config
+    assert fcfg.scan_check.model == "beam" and isinstance(loc.filter.sensor, LikelihoodFieldModel)
+    beam = loc.verifier
+    assert isinstance(beam, BeamModel) and loc.verifier is beam  # built once (at load)
+    assert beam.cfg.z_short == fcfg.sensor.z_short and beam.cfg.max_beams == fcfg.sensor.max_beams
+    loc.filter_config = fcfg.model_copy(update={"scan_check": fcfg.scan_check.model_copy(update={"model": "filter"})})
+    loc.reset()
+    assert loc.verifier is loc.filter.sensor
+    loc.filter_config = fcfg.model_copy(update={"scan_check": fcfg.scan_check.model_copy(update={"rank_prior": 0.0})})
+    loc.reset()
+    assert loc.verifier is beam
+    # The seeding candidates are the beam model's best fits: ordered by fit alone (rank_prior 0), the first
+    # scores at least every retrieved pose (each retrieved pose is one of its own draws).
+    run = load_run(sorted((ing / "runs").glob("query_*.parquet"))[0])
+    image, scan = ing / run.image_ids[0], loc.scan(run.ranges[0])
+    cands, _ = loc.proposals(("image",), image, scan)
+    retrieved = loc.retrieved(image)[: fcfg.scan_check.pool]
+    assert beam.evaluate(cands[:, :3], scan).log_likelihood.max() >= beam.evaluate(retrieved, scan).log_likelihood.max()
+    e = loc.update(run.odom[0], run.ranges[0], image=image)
+    assert e.source == "image" and np.all(np.isfinite(e.pose))

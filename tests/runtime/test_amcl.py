@@ -186,3 +186,34 @@ def test_a_false_alarm_keeps_the_right_belief(world):
     assert len(f.particles) == f.cfg.max_particles and near.sum() >= 100
     errors, _, _ = replay(f, run, ranges, scanner, start=k, stop=k + 6)
     assert np.all(errors[2:] < 0.3), errors
+
+
+def test_beams_are_skipped_only_while_the_belief_is_one_settled_cluster(world, monkeypatch):
+    """`sensor.beam_skip` with `beam_skip_spread_m`: a tracked belief skips, the same belief with particles
+    injected at a far candidate does not (the minority's beams are the evidence for it), and with the
+    gate off (null) it skips whatever the belief, as nav2 does."""
+    occ, runs, scans, scanner = world
+    run, ranges = runs["mapping_00"], scans["mapping_00"]
+    used = []
+
+    def track(**sensor):
+        f = make(occ, sensor={"beam_skip": True, **sensor})
+        f.init_pose(run.gt[0])
+        replay(f, run, ranges, scanner, stop=5)
+        monkeypatch.setattr(f.sensor, "evaluate_skipping", lambda *a: used.append("skip") or f.sensor.evaluate(*a))
+        return f
+
+    f = track()
+    assert f._skips_beams()
+    f.update(run.odom[5], scan_of(scanner, ranges[5]))
+    assert used == ["skip"]
+    f.inject([run.gt[5] + [6.0, 0.0, 0.0]])
+    assert not f._skips_beams()
+    used.clear()
+    f.update(run.odom[6], scan_of(scanner, ranges[6]))
+    assert used == []
+    nav2 = track(beam_skip_spread_m=None)
+    nav2.inject([run.gt[5] + [6.0, 0.0, 0.0]])
+    assert nav2._skips_beams()
+    assert not make(occ, sensor={"beam_skip": False})._skips_beams()
+    assert not make(occ, sensor={"model": "beam"})._skips_beams()  # the beam model never skips

@@ -197,3 +197,29 @@ def test_injected_particles_hold_the_share_they_are_given(world):
     np.testing.assert_allclose(w[:1000], 0.9 * before)  # the old belief keeps its shape
     with pytest.raises(ValueError, match="share"):
         f.inject(np.array([[*stops[5], 1.0]]), n=10, share=1.0)
+
+
+def test_the_beam_verifier_keeps_the_truth_first_when_people_block_the_laser(world):
+    """Two people close to the laser (two sectors of short readings): the likelihood field scores their
+    returns as misses, so at several stops a decoy elsewhere fits better; the beam model explains them as
+    short readings and keeps the truth first at every stop (`scan_check.model: beam`)."""
+    lmap, sensor, scanner, stops = world
+    beam = make_sensor_model(lmap, FilterConfig().sensor.model_copy(update={"model": "beam"}), RANGE_MAX)
+    first = {"field": 0, "beam": 0}
+    tested = range(0, len(stops), 3)
+    for k in tested:
+        truth = np.array([*stops[k, :2], 0.7])
+        scan = scan_at(scanner, truth)
+        ranges = scan.ranges.copy()
+        ranges[60:110] = np.minimum(ranges[60:110], 0.7)
+        ranges[170:220] = np.minimum(ranges[170:220], 1.1)
+        blocked = Scan(ranges, scan.angle_min, scan.angle_increment, RANGE_MAX)
+        decoys = np.column_stack([np.delete(stops[:, :2], k, 0), np.random.default_rng(0).uniform(-np.pi, np.pi,
+                                                                                                   len(stops) - 1)])
+        pool = np.vstack([truth + np.array([0.2, -0.2, 0.1]), decoys])
+        for name, model in (("field", sensor), ("beam", beam)):
+            got = check_candidates(model, lmap, pool, blocked, keep=len(pool), samples=64, std_xy=0.5,
+                                   std_theta=np.radians(15), rng=np.random.default_rng(1), rounds=3)
+            first[name] += int(got.rank[0] == 0)
+    assert first["beam"] == len(tested)
+    assert first["field"] <= len(tested) - 2, first

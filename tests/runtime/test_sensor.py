@@ -124,6 +124,7 @@ def test_beam_skipping_leaves_out_what_the_map_lacks_and_only_that(lmap):
                                model.evaluate(spread, scan).log_likelihood, rtol=1e-6)
     with pytest.raises(ValueError, match="likelihood_field"):
         SensorModelConfig(beam_skip=True, model="beam")
+    assert SensorModelConfig(model="beam").beam_skip  # the default does not stand in the beam model's way
 
 
 def test_off_map_particles_get_finite_low_likelihoods(lmap):
