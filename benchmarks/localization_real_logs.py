@@ -1,7 +1,7 @@
 """Localization on the real CARMEN logs: tracking, global localization over seeds, kidnap recovery.
 
     .venv/bin/python benchmarks/localization_real_logs.py [--data data/carmen] [--out data/localize]
-        [--global-trials 10] [--kidnap-trials 5] [--logs intel-corrected aces-corrected ...]
+        [--global-trials 10] [--kidnap-trials 5] [--logs intel-corrected aces-corrected ...] [--set KEY=VALUE]
 
 Needs the logs ingested first (`siteloc ingest-log` or `make demo`, which writes data/carmen/<log>/).
 For every log it runs `siteloc localize`'s library function three ways with the `demo` config:
@@ -41,9 +41,13 @@ def main() -> None:
     ap.add_argument("--global-trials", type=int, default=10)
     ap.add_argument("--kidnap-trials", type=int, default=5)
     ap.add_argument("--config", default="demo")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override, as the CLI's --set (e.g. filter.sensor.beam_skip=false)")
     args = ap.parse_args()
     print("\n".join(machine_info()))
-    cfg = load_config(args.config)
+    cfg = load_config(args.config, args.set)
+    if args.set:
+        print("overrides: " + ", ".join(args.set))
     rows = []
     for log in args.logs:
         data = args.data / log

@@ -217,13 +217,15 @@ class AdaptiveMCL:
         self._resample(scan)
 
     def _skips_beams(self) -> bool:
-        """Beam skipping (`sensor.beam_skip`), while the belief is one settled cluster when
-        `sensor.beam_skip_spread_m` is set (checked on the particles as they are now, injections included)."""
+        """Beam skipping (`sensor.beam_skip`); with `sensor.beam_skip_spread_m` set, only while the filter
+        tracks one settled cluster (checked on the particles as they are now, injections included)."""
         s = self.cfg.sensor
         if not s.beam_skip or s.model != "likelihood_field":
             return False
         if s.beam_skip_spread_m is None:
             return True
+        if self.state != FilterState.TRACKING:
+            return False
         w = self.weights
         xy = self.particles[:, :2]
         var = w @ (xy - w @ xy) ** 2

@@ -189,9 +189,9 @@ def test_a_false_alarm_keeps_the_right_belief(world):
 
 
 def test_beams_are_skipped_only_while_the_belief_is_one_settled_cluster(world, monkeypatch):
-    """`sensor.beam_skip` with `beam_skip_spread_m`: a tracked belief skips, the same belief with particles
-    injected at a far candidate does not (the minority's beams are the evidence for it), and with the
-    gate off (null) it skips whatever the belief, as nav2 does."""
+    """`sensor.beam_skip` with `beam_skip_spread_m`: a tracked belief skips; the same belief while the
+    filter is not tracking, or with particles injected at a far candidate (the minority's beams are the
+    evidence for it), does not; with the gate off (null) it skips whatever the belief, as nav2 does."""
     occ, runs, scans, scanner = world
     run, ranges = runs["mapping_00"], scans["mapping_00"]
     used = []
@@ -204,7 +204,10 @@ def test_beams_are_skipped_only_while_the_belief_is_one_settled_cluster(world, m
         return f
 
     f = track()
-    assert f._skips_beams()
+    assert f.state == FilterState.TRACKING and f._skips_beams()
+    f.state = FilterState.RELOCALISING  # a search that has just collapsed onto one cluster still uses every beam
+    assert not f._skips_beams()
+    f.state = FilterState.TRACKING
     f.update(run.odom[5], scan_of(scanner, ranges[5]))
     assert used == ["skip"]
     f.inject([run.gt[5] + [6.0, 0.0, 0.0]])
