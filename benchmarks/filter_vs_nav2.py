@@ -60,7 +60,7 @@ def select_steps(gt: np.ndarray, spacing: float, n: int) -> list[int]:
 
 def ours(lmap, odom, gt, scans, n, beams, model, backend="auto", budget_s=1e9):
     cfg = FilterConfig(method="mcl", min_particles=n, max_particles=n, update_min_d=0.0, update_min_a_deg=0.0,
-                       sensor={"model": model, "max_beams": beams})
+                       sensor={"model": model, "max_beams": beams, "beam_skip": False})  # as nav2's default
     f = AdaptiveMCL(lmap, cfg, range_max=RANGE_MAX)
     if backend != "auto":
         f.sensor.backend = backend

@@ -78,6 +78,7 @@ def main() -> None:
     from dataclasses import replace
 
     base = load_config("demo").filter
+    base = base.model_copy(update={"sensor": base.sensor.model_copy(update={"beam_skip": False})})  # as nav2's
     filters = {"ours LF": base, "ours beam": base.model_copy(update={"sensor": base.sensor.model_copy(
         update={"model": "beam"})})}
     rows = []

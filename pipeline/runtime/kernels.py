@@ -85,6 +85,43 @@ def field_sum(poses: np.ndarray, bx: np.ndarray, by: np.ndarray, field: np.ndarr
     return out
 
 
+@njit(cache=True, fastmath=True, nogil=True)
+def _beam_agreement_numba(poses, bx, by, distance, near, inv_res, ox, oy, agree):  # pragma: no cover - compiled
+    h2, w2 = distance.shape
+    for i in range(poses.shape[0]):
+        c = math.cos(poses[i, 2])
+        s = math.sin(poses[i, 2])
+        gx0 = (poses[i, 0] - ox) * inv_res + 1.0
+        gy0 = (poses[i, 1] - oy) * inv_res + 1.0
+        for b in range(bx.shape[0]):
+            gx = gx0 + (c * bx[b] - s * by[b]) * inv_res
+            gy = gy0 + (s * bx[b] + c * by[b]) * inv_res
+            ix = min(max(int(math.floor(gx)), 0), w2 - 1)
+            iy = min(max(int(math.floor(gy)), 0), h2 - 1)
+            if distance[iy, ix] < near:
+                agree[b] += 1.0
+
+
+def beam_agreement(poses: np.ndarray, bx: np.ndarray, by: np.ndarray, distance: np.ndarray, near: float,
+                   resolution: float, origin: tuple[float, float], backend: str = "auto") -> np.ndarray:
+    """(B,) per beam, the share of poses whose endpoint lies less than `near` from an obstacle (`distance`:
+    the padded distance grid): what beam skipping decides on."""
+    poses = np.ascontiguousarray(poses, dtype=np.float64)
+    if len(poses) == 0:
+        return np.zeros(len(bx))
+    if backend == "numpy" or (backend == "auto" and not HAVE_NUMBA):
+        agree = np.zeros(len(bx))
+        for k in range(0, len(poses), 256):
+            cells = endpoint_cells(poses[k:k + 256], bx, by, distance.shape, resolution, origin)
+            agree += (distance.ravel()[cells] < near).sum(axis=0)
+        return agree / len(poses)
+    agree = np.zeros(len(bx), dtype=np.float64)
+    _beam_agreement_numba(poses, np.ascontiguousarray(bx, dtype=np.float64),
+                          np.ascontiguousarray(by, dtype=np.float64), distance, float(near), 1.0 / resolution,
+                          float(origin[0]), float(origin[1]), agree)
+    return agree / len(poses)
+
+
 # --------------------------------------------------------------------------------------------- ray casting
 
 

@@ -11,7 +11,8 @@ the filter declares itself lost and an image comes with the update, particles ar
 image's Top-4 (`filter.inject_particles` per step, the paper's 1000; with
 `filter.inject_while_relocalising`, the default, at every step until it tracks again). With
 `filter.scan_check.pool` (10 by default) the four are not retrieval's first four but the four of its
-Top-pool that fit the update's scan best (`pipeline.runtime.scancheck`), at their best-fitting pose;
+Top-pool that fit the update's scan best (`pipeline.runtime.scancheck`; scored by the beam model by
+default, `filter.scan_check.model`), at their best-fitting pose;
 while the filter tracks, `filter.challenge` (every 2nd update with an image) checks the image's Top-10
 against the scan beside the estimate, and a far pose that fits better at several tests in a row
 (`pipeline.runtime.scancheck.Rivals`) gets particles: a kidnapping the laser cannot see. With a bundle

@@ -5,13 +5,15 @@ fifth or twentieth (office: recall@4 0.46, recall@50 0.74), so four poses waste 
 while the truth sits further down the list. The scan that comes with the same update can tell many of
 them apart: each of the Top-N retrieved poses is perturbed (`samples` poses around it, Gaussian, kept
 in free space; then again around the best so far at half the spread, `rounds` times), every
-perturbation is scored by the filter's own sensor model, and a candidate's score is its best
+perturbation is scored by a sensor model (`filter.scan_check.model`: by default the beam model, which
+takes a person in front of the laser for a short reading where the filter's likelihood field scores a
+miss; or the filter's own), and a candidate's score is its best
 perturbation's log-likelihood (plus a prior from its retrieval rank, when given). The best `keep`
 candidates, at their best-fitting pose, are what gets injected (weighted 4:3:2:1 as before). The
 filter still decides between them over the next updates: a scan that fits a twin as well as the truth
 leaves both in.
 
-This is retrieval followed by geometric verification (place-recognition practice) with the filter's
+This is retrieval followed by geometric verification (place-recognition practice) with a laser
 likelihood as the verifier; the cost is `rounds` sensor evaluations of N x samples poses, once per
 injection.
 """

@@ -114,15 +114,20 @@ class LikelihoodFieldModel:
         n = len(particles)
         if len(r) == 0:
             return SensorResult(np.zeros(n), np.ones(n), 0)
-        cells = kernels.endpoint_cells(laser_poses(particles, self.base_from_laser), r * np.cos(a), r * np.sin(a),
-                                       self.field.shape, self.map.resolution, (self.map.origin_x, self.map.origin_y))
-        logp = self.field.ravel()[cells].astype(np.float64)
-        agree = (self.map.distance_padded.ravel()[cells] < self.cfg.beam_skip_distance).mean(axis=0)
+        poses = laser_poses(particles, self.base_from_laser)
+        bx, by, origin = r * np.cos(a), r * np.sin(a), (self.map.origin_x, self.map.origin_y)
+        agree = kernels.beam_agreement(poses, bx, by, self.map.distance_padded, self.cfg.beam_skip_distance,
+                                       self.map.resolution, origin, backend=self.backend)
         keep = agree >= self.cfg.beam_skip_threshold
         if 1.0 - keep.mean() >= self.cfg.beam_skip_error_threshold:
             keep[:] = True
-        rel = np.exp(logp.sum(axis=1) / len(r) - self.log_best)
-        return SensorResult(logp[:, keep].sum(axis=1) / self.cfg.temperature, rel, int(keep.sum()))
+        total = kernels.field_sum(poses, bx, by, self.field, self.map.resolution, origin, backend=self.backend)
+        rel = np.exp(total / len(r) - self.log_best)
+        if keep.all():
+            return SensorResult(total / self.cfg.temperature, rel, len(r))
+        kept = kernels.field_sum(poses, bx[keep], by[keep], self.field, self.map.resolution, origin,
+                                 backend=self.backend)
+        return SensorResult(kept / self.cfg.temperature, rel, int(keep.sum()))
 
 
 _TABLES: dict[tuple, tuple[np.ndarray, np.ndarray, float]] = {}

@@ -145,6 +145,23 @@ def test_numba_and_numpy_field_sums_agree(lmap):
     np.testing.assert_allclose(fast, twin, rtol=1e-5)
 
 
+def test_numba_and_numpy_beam_agreement_agree_with_a_brute_force_count(lmap):
+    rng = np.random.default_rng(4)
+    poses = np.column_stack([rng.uniform(-3, 7, 700), rng.uniform(-4, 4, 700), rng.uniform(-4, 4, 700)])
+    r, a = rng.uniform(0.1, 12, 40), rng.uniform(-2.4, 2.4, 40)
+    bx, by = r * np.cos(a), r * np.sin(a)
+    origin = (lmap.origin_x, lmap.origin_y)
+    fast = kernels.beam_agreement(poses, bx, by, lmap.distance_padded, 0.5, lmap.resolution, origin)
+    twin = kernels.beam_agreement(poses, bx, by, lmap.distance_padded, 0.5, lmap.resolution, origin, backend="numpy")
+    # Independent twin: the endpoints in the map frame, looked up through the map's own world-to-cell.
+    c, s = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
+    ex, ey = poses[:, 0:1] + c * bx - s * by, poses[:, 1:2] + s * bx + c * by
+    near = lmap.distance_at(ex, ey) < 0.5
+    np.testing.assert_allclose(fast, twin, atol=1e-12)
+    np.testing.assert_allclose(fast, near.mean(axis=0), atol=2 / len(poses))  # cell-boundary rounding
+    assert np.any((fast > 0) & (fast < 1))  # a test with something to count
+
+
 def test_ray_casting_matches_brute_force_marching():
     occ = box_map()
     occ.grid[40:45, 30:90] = OCCUPIED  # a bar across the room
