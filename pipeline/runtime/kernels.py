@@ -31,20 +31,29 @@ except ImportError:  # pragma: no cover - exercised only where numba cannot be i
 # --------------------------------------------------------------------------------------- likelihood field
 
 
+@njit(inline="always")
+def _pose_frame(pose, inv_res, ox, oy):  # pragma: no cover - compiled
+    """cos, sin and the padded-grid position of a laser pose, once per pose."""
+    return math.cos(pose[2]), math.sin(pose[2]), (pose[0] - ox) * inv_res + 1.0, (pose[1] - oy) * inv_res + 1.0
+
+
+@njit(inline="always")
+def _endpoint_cell(frame, bx, by, inv_res, h2, w2):  # pragma: no cover - compiled
+    """(row, col) in the padded grid of the endpoint of beam (bx, by) (laser frame), clipped to the grid."""
+    c, s, gx0, gy0 = frame
+    gx = gx0 + (c * bx - s * by) * inv_res
+    gy = gy0 + (s * bx + c * by) * inv_res
+    return min(max(int(math.floor(gy)), 0), h2 - 1), min(max(int(math.floor(gx)), 0), w2 - 1)
+
+
 @njit(cache=True, fastmath=True, nogil=True)
 def _field_sum_numba(poses, bx, by, field, inv_res, ox, oy, out):  # pragma: no cover - compiled
     h2, w2 = field.shape
     for i in range(poses.shape[0]):
-        c = math.cos(poses[i, 2])
-        s = math.sin(poses[i, 2])
-        gx0 = (poses[i, 0] - ox) * inv_res + 1.0
-        gy0 = (poses[i, 1] - oy) * inv_res + 1.0
+        frame = _pose_frame(poses[i], inv_res, ox, oy)
         acc = 0.0
         for b in range(bx.shape[0]):
-            gx = gx0 + (c * bx[b] - s * by[b]) * inv_res
-            gy = gy0 + (s * bx[b] + c * by[b]) * inv_res
-            ix = min(max(int(math.floor(gx)), 0), w2 - 1)
-            iy = min(max(int(math.floor(gy)), 0), h2 - 1)
+            iy, ix = _endpoint_cell(frame, bx[b], by[b], inv_res, h2, w2)
             acc += field[iy, ix]
         out[i] = acc
 
@@ -89,15 +98,9 @@ def field_sum(poses: np.ndarray, bx: np.ndarray, by: np.ndarray, field: np.ndarr
 def _beam_agreement_numba(poses, bx, by, distance, near, inv_res, ox, oy, agree):  # pragma: no cover - compiled
     h2, w2 = distance.shape
     for i in range(poses.shape[0]):
-        c = math.cos(poses[i, 2])
-        s = math.sin(poses[i, 2])
-        gx0 = (poses[i, 0] - ox) * inv_res + 1.0
-        gy0 = (poses[i, 1] - oy) * inv_res + 1.0
+        frame = _pose_frame(poses[i], inv_res, ox, oy)
         for b in range(bx.shape[0]):
-            gx = gx0 + (c * bx[b] - s * by[b]) * inv_res
-            gy = gy0 + (s * bx[b] + c * by[b]) * inv_res
-            ix = min(max(int(math.floor(gx)), 0), w2 - 1)
-            iy = min(max(int(math.floor(gy)), 0), h2 - 1)
+            iy, ix = _endpoint_cell(frame, bx[b], by[b], inv_res, h2, w2)
             if distance[iy, ix] < near:
                 agree[b] += 1.0
 
