@@ -198,10 +198,11 @@ class AdaptiveMCL:
 
     def _measure(self, scan: Scan) -> None:
         c = self.cfg
-        res = (self.sensor.evaluate_skipping if self._skips_beams() else self.sensor.evaluate)(self.particles, scan)
+        prior = self.weights
+        res = (self.sensor.evaluate_skipping if self._skips_beams(prior) else self.sensor.evaluate)(self.particles,
+                                                                                                     scan)
         if res.beams_used == 0:
             return
-        prior = self.weights
         self.log_w = self.log_w + res.log_likelihood
         self.log_w -= logsumexp(self.log_w)
         self._best = float(res.relative_likelihood.max())
@@ -216,9 +217,10 @@ class AdaptiveMCL:
         self._low_updates = self._low_updates + 1 if low else 0
         self._resample(scan)
 
-    def _skips_beams(self) -> bool:
+    def _skips_beams(self, weights: np.ndarray | None = None) -> bool:
         """Beam skipping (`sensor.beam_skip`); with `sensor.beam_skip_spread_m` set, only while the filter
-        tracks one settled cluster (checked on the particles as they are now, injections included)."""
+        tracks one settled cluster (checked on the particles as they are now, injections included;
+        `weights`: theirs, when the caller has them already)."""
         s = self.cfg.sensor
         if not s.beam_skip or s.model != "likelihood_field":
             return False
@@ -226,7 +228,7 @@ class AdaptiveMCL:
             return True
         if self.state != FilterState.TRACKING:
             return False
-        w = self.weights
+        w = self.weights if weights is None else weights
         xy = self.particles[:, :2]
         var = w @ (xy - w @ xy) ** 2
         return bool(np.sqrt(var.sum()) <= s.beam_skip_spread_m)

@@ -188,11 +188,11 @@ class Localizer:
             return self.filter.sensor
         from pipeline.runtime.sensor import make_sensor_model
 
-        cfg = self.filter_config.sensor.model_copy(update={"model": "beam", "beam_skip": False})
-        key = cfg.model_dump_json()
-        if getattr(self, "_verifier_key", None) != key:
+        sensor = self.filter_config.sensor
+        if getattr(self, "_verifier_for", None) != sensor:  # called at every check: rebuilt only on a change
+            cfg = sensor.model_copy(update={"model": "beam", "beam_skip": False})
             self._verifier = make_sensor_model(self.map, cfg, self.laser.range_max, self.laser.base_from_laser)
-            self._verifier_key = key
+            self._verifier_for = sensor
         return self._verifier
 
     def proposals(self, sources: tuple[str, ...], image, scan) -> tuple[np.ndarray, np.ndarray]:

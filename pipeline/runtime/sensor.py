@@ -94,15 +94,7 @@ class LikelihoodFieldModel:
         return r[ok], a[ok]
 
     def evaluate(self, particles: np.ndarray, scan: Scan) -> SensorResult:
-        r, a = self.beams(scan)
-        n = len(particles)
-        if len(r) == 0:  # nothing seen: the scan says nothing about the pose
-            return SensorResult(np.zeros(n), np.ones(n), 0)
-        poses = laser_poses(particles, self.base_from_laser)
-        total = kernels.field_sum(poses, r * np.cos(a), r * np.sin(a), self.field, self.map.resolution,
-                                  (self.map.origin_x, self.map.origin_y), backend=self.backend)
-        rel = np.exp(total / len(r) - self.log_best)
-        return SensorResult(total / self.cfg.temperature, rel, len(r))
+        return self._evaluate(particles, scan, skip=False)
 
     def evaluate_skipping(self, particles: np.ndarray, scan: Scan) -> SensorResult:
         """`evaluate` with nav2 amcl's beam skipping (`cfg.beam_skip_*`): a beam whose endpoint lies within
@@ -110,20 +102,25 @@ class LikelihoodFieldModel:
         the weights (it most likely hit something the map does not have), unless beam_skip_error_threshold of
         the beams would go (then the belief, not the beams, is wrong). The relative likelihood, which the
         kidnap rule reads, still scores every beam: skipping must not hide a kidnapping."""
+        return self._evaluate(particles, scan, skip=True)
+
+    def _evaluate(self, particles: np.ndarray, scan: Scan, *, skip: bool) -> SensorResult:
         r, a = self.beams(scan)
         n = len(particles)
-        if len(r) == 0:
+        if len(r) == 0:  # nothing seen: the scan says nothing about the pose
             return SensorResult(np.zeros(n), np.ones(n), 0)
         poses = laser_poses(particles, self.base_from_laser)
         bx, by, origin = r * np.cos(a), r * np.sin(a), (self.map.origin_x, self.map.origin_y)
-        agree = kernels.beam_agreement(poses, bx, by, self.map.distance_padded, self.cfg.beam_skip_distance,
-                                       self.map.resolution, origin, backend=self.backend)
-        keep = agree >= self.cfg.beam_skip_threshold
-        if 1.0 - keep.mean() >= self.cfg.beam_skip_error_threshold:
-            keep[:] = True
         total = kernels.field_sum(poses, bx, by, self.field, self.map.resolution, origin, backend=self.backend)
         rel = np.exp(total / len(r) - self.log_best)
-        if keep.all():
+        keep = None
+        if skip:
+            agree = kernels.beam_agreement(poses, bx, by, self.map.distance_padded, self.cfg.beam_skip_distance,
+                                           self.map.resolution, origin, backend=self.backend)
+            keep = agree >= self.cfg.beam_skip_threshold
+            if 1.0 - keep.mean() >= self.cfg.beam_skip_error_threshold:
+                keep = None
+        if keep is None or keep.all():
             return SensorResult(total / self.cfg.temperature, rel, len(r))
         kept = kernels.field_sum(poses, bx[keep], by[keep], self.field, self.map.resolution, origin,
                                  backend=self.backend)
