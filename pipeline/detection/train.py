@@ -48,7 +48,7 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     import torch
     from safetensors.torch import save_file
 
-    from pipeline.detection.builders import build_detector
+    from pipeline.detection.builders import build_detector, use_channels_last
     from pipeline.detection.data import DetectionDataset, load_samples, repeat_factors, split_by_stop
     from pipeline.detection.inference import pick_device
     from pipeline.io.atomic import atomic_dir, write_text_atomic
@@ -76,6 +76,7 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     device = pick_device(d.device)
     amp = d.amp and device.type == "cuda"
     model = built.model.to(device)
+    use_channels_last(model)
     opt = torch.optim.SGD(param_groups(model, d), lr=d.lr, momentum=d.momentum, weight_decay=d.weight_decay)
     scaler = torch.amp.GradScaler("cuda", enabled=amp)
     partial = out.with_name(out.name + ".partial")

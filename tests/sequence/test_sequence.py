@@ -73,6 +73,24 @@ def test_frame_features_are_the_classifiers_logits_of_every_run_frame(frames):
         x = (enc.prepare(image)[None] - 0.5) / 0.5
         ref = enc.model(x).numpy()[0]
     np.testing.assert_allclose(tables.descriptor_matrix(t)[k], ref, rtol=1e-4, atol=1e-4)
+    report = json.loads((out / "report.json").read_text())  # on a CPU the logits come from the bundle's graph
+    assert report["engine"] == "onnx"
+    assert [g["max_abs"] <= g["tolerance"] for g in report["onnx"]["graphs"].values()] == [True]
+
+
+def test_frame_features_by_torch_match_the_onnx_ones(frames, tmp_path):
+    from pipeline.config import load_config
+    from pipeline.io import tables
+    from pipeline.sequence.frames import run_frame_features
+    from tests.conftest import MICRO_SETS, SEQUENCE_SETS
+
+    _, ing, out = frames
+    cfg = load_config("ci", [*MICRO_SETS, *SEQUENCE_SETS, "sequence.engine=torch"])
+    ref = run_frame_features(cfg, inputs={"data": ing}, outputs={"out": tmp_path / "f"}, progress=False)
+    a, b = (tables.read_table(d / "frames.parquet", "frames") for d in (out, ref))
+    assert a.drop_columns(["descriptor"]).equals(b.drop_columns(["descriptor"]))
+    np.testing.assert_allclose(tables.descriptor_matrix(a), tables.descriptor_matrix(b), atol=1e-4)
+    assert json.loads((ref / "report.json").read_text())["engine"] == "torch"
 
 
 def test_training_builds_a_whitened_database_and_resumes(frames, tmp_path, monkeypatch):
