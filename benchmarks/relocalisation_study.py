@@ -11,7 +11,7 @@ image_reloc, sequence; `--methods`), `--trials` seeds each. Every frame is descr
 for all variants. Printed per variant and method: global localization (converged replays, median
 converge step, p90 error before the first kidnapping) and kidnapping recovery (recovered, within 15 /
 40 steps, median / p90 steps, within 15 steps and under 10 cm: issue 8's measure) and the mean time of
-an update.
+an update. Replays run in `--workers` processes (the figures do not depend on it).
 """
 
 from __future__ import annotations
@@ -85,6 +85,8 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=5)
     ap.add_argument("--methods", default="proposed,image_reloc,sequence")
     ap.add_argument("--run", action="append", help="only these query runs")
+    ap.add_argument("--workers", type=int, default=None, help="replay processes (default: the usable cores; 1: in "
+                    "this process). Update times are measured with that many replays sharing the machine")
     ap.add_argument("--slow", type=int, default=None, help="also list the kidnappings recovered later than this "
                     "many steps (or never), per variant and method")
     args = ap.parse_args()
@@ -109,7 +111,7 @@ def main() -> None:
         loc.filter_config = with_changes(own, changes)
         t0 = time.perf_counter()
         results, retrieve = run_experiments(loc, args.data, runs, trials=args.trials, methods=methods,
-                                            retrieve=retrieve, progress=False)
+                                            retrieve=retrieve, progress=False, workers=args.workers)
         wall = time.perf_counter() - t0
         summary = {m: summarise(r) for m, r in results.items()}
         kid = kidnap_table(results, summary)

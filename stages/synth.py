@@ -27,7 +27,9 @@ synth_report.json, synth_timing.json, config.yaml and ATTRIBUTION.md. `siteloc i
 --config picks the synth section of a preset in configs/ (demo: office; ci: a micro tiny site; paper:
 paper) and --preset / --seed / --set override it. --set overrides any site preset key, e.g.
 --set camera.width=320 --set camera.height=240 --set runs.query_runs=5.
-Every output but synth_timing.json is byte-identical for the same preset, overrides and seed.
+Every output but synth_timing.json is byte-identical for the same preset, overrides and seed, however
+many --workers render (each a process with its own single-threaded EGL context: on 2 cores two of them
+render 1.3x faster than one context using both cores).
 
 Example: siteloc synth --preset office --out data/office/site
 """
@@ -56,6 +58,10 @@ def synth(
         typer.Option("--set", "-s", help="Override a site preset key, e.g. --set camera.width=320 (repeatable).",
                      rich_help_panel="Configuration"),
     ] = None,
+    workers: Annotated[
+        int | None, typer.Option("--workers", "-w", min=1, show_default=False,
+                                 help="Rendering processes [default: the usable cores, at most 4; 1: this process].")
+    ] = None,
     config: ConfigOpt = "demo",
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
@@ -70,13 +76,13 @@ def synth(
         cfg = load(config, None).synth
         site = load_site_preset(preset or cfg.site, {**cfg.preset_overrides, **parse_overrides(overrides)})
         path = run_synth(site, outputs={"out": out}, seed=cfg.seed if seed is None else seed, change=change,
-                         force=force, allow_fallback=not strict_assets)
+                         force=force, allow_fallback=not strict_assets, workers=workers)
         rep = json.loads((path / "synth_report.json").read_text())
         timing = json.loads((path / "synth_timing.json").read_text())
         typer.echo(
             f"synthesised '{rep['site']}': {rep['stops']} stops, {rep['capture_images']} capture images, "
-            f"{len(rep['runs'])} runs, {rep['images_rendered']} images at {timing['render_images_per_s']} images/s, "
-            f"{timing['wall_time_s']} s wall -> {path}"
+            f"{len(rep['runs'])} runs, {rep['images_rendered']} images at {timing['images_per_s']} images/s "
+            f"({timing['render_workers']} rendering processes), {timing['wall_time_s']} s wall -> {path}"
         )
         typer.echo("boxes per class: " + ", ".join(f"{c} {n}" for c, n in rep["boxes_per_class"].items()))
         if rep["assets_procedural"]:

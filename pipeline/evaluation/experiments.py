@@ -161,45 +161,71 @@ def image_only_replay(run, data: Path, retrieve: CachedRetrieval) -> dict:
             "updated": np.array([bool(i) for i in run.image_ids]), "best": np.ones(T), "ms": ms}
 
 
+def replay_job(loc, data: Path, run, method: str, trial: int, threshold_m: float, hold: int) -> Replay:
+    """One method's replay of one run, trial `trial`, with `loc`'s filter settings (restored afterwards).
+    `loc.retrieved` should be a `CachedRetrieval` (image_only reads it)."""
+    from pipeline.localize import replay_bundle, replay_one
+
+    own = loc.filter_config
+    try:
+        if method in ("proposed", "image_reloc", "sequence"):
+            mode = {"proposed": own.relocalise_with, "image_reloc": "image", "sequence": "sequence"}[method]
+            loc.filter_config = own.model_copy(update={"relocalise_with": mode})
+            rep = replay_bundle(run, loc, data, trial)
+        elif method == "image_only":
+            rep = image_only_replay(run, data, loc.retrieved)
+        else:
+            fcfg = own.model_copy(update={"seed": loc.base_seed, "method": method})
+            rep = replay_one(run, loc.map, fcfg, loc.laser.base_from_laser, "uniform", trial)
+    finally:
+        loc.filter_config = own
+    return _replay(run, trial, rep, threshold_m, hold)
+
+
 def run_experiments(loc, data: Path, runs: list, *, trials: int, threshold_m: float = 0.5, hold: int = 10,
                     progress: bool = True, methods: list[str] | None = None,
-                    retrieve: CachedRetrieval | None = None) -> tuple[dict[str, list[Replay]], CachedRetrieval]:
+                    retrieve: CachedRetrieval | None = None,
+                    workers: int | None = 1) -> tuple[dict[str, list[Replay]], CachedRetrieval]:
     """Every method (or those named) on every run and trial; returns {method: [Replay]} and the retrieval
-    cache (pass it back as `retrieve` to replay other settings without describing the frames again)."""
-    from pipeline.localize import replay_bundle, replay_one
+    cache (pass it back as `retrieve` to replay other settings without describing the frames again).
+
+    `workers` > 1 (None: the usable cores, at most 8) describes every frame first, in that many threads, and
+    replays in that many processes (`pipeline.evaluation.parallel`); the replays are the same either way."""
     from pipeline.progress import progress_bar
 
     retrieve = retrieve or CachedRetrieval(loc)
-    loc.retrieved = retrieve  # the Localizer calls self.retrieved: every trial shares the cache
-    fcfg = loc.filter_config.model_copy(update={"seed": loc.base_seed})
-    mount = loc.laser.base_from_laser
     unknown = sorted(set(methods or ()) - set(METHODS))
     if unknown:
         raise ValueError(f"unknown methods {unknown}; known: {list(METHODS)}")
     methods = [m for m in METHODS if (m not in ("image_reloc", "sequence") or loc.sequence is not None)
                and (methods is None or m in methods)]
-    out: dict[str, list[Replay]] = {m: [] for m in methods}
-    jobs = [(m, r, t) for m in methods if m != "image_only" for r in runs for t in range(trials)]
-    jobs += [("image_only", r, 0) for r in runs if "image_only" in methods]
-    own = loc.filter_config
-    if loc.sequence is not None:
-        loc.sequence.encode = PerImageCache(loc.sequence.encode)  # each frame's logits, once
-    try:
-        for method, run, trial in progress_bar(jobs, desc="experiments", unit="replay", enabled=progress):
-            if method in ("proposed", "image_reloc", "sequence"):
-                mode = {"proposed": own.relocalise_with, "image_reloc": "image", "sequence": "sequence"}[method]
-                loc.filter_config = own.model_copy(update={"relocalise_with": mode})
-                rep = replay_bundle(run, loc, data, trial)
-            elif method == "image_only":
-                rep = image_only_replay(run, data, retrieve)
-            else:
-                rep = replay_one(run, loc.map, fcfg.model_copy(update={"method": method}), mount, "uniform", trial)
-            out[method].append(_replay(run, trial, rep, threshold_m, hold))
-    finally:
-        del loc.retrieved  # the class's own method again
-        loc.filter_config = own
+    jobs = [(m, i, t) for m in methods if m != "image_only" for i in range(len(runs)) for t in range(trials)]
+    jobs += [("image_only", i, 0) for i in range(len(runs)) if "image_only" in methods]
+    if workers is None:
+        from pipeline.onnx_threads import thread_layout
+
+        workers = thread_layout()[0]
+    workers = max(1, min(workers, len(jobs)))
+    if workers > 1:
+        from pipeline.evaluation.parallel import prefetch_retrievals, replay_in_processes
+
+        prefetch_retrievals(loc, data, runs, retrieve, threads=workers, progress=progress)
+        replays = replay_in_processes(loc, data, runs, jobs, retrieve, workers=workers, threshold_m=threshold_m,
+                                      hold=hold, progress=progress)
+    else:
+        loc.retrieved = retrieve  # the Localizer calls self.retrieved: every trial shares the cache
         if loc.sequence is not None:
-            del loc.sequence.encode
+            loc.sequence.encode = PerImageCache(loc.sequence.encode)  # each frame's logits, once
+        try:
+            replays = [replay_job(loc, data, runs[i], method, trial, threshold_m, hold) for method, i, trial in
+                       progress_bar(jobs, desc="experiments", unit="replay", enabled=progress)]
+        finally:
+            del loc.retrieved  # the class's own method again
+            if loc.sequence is not None:
+                del loc.sequence.encode
+    out: dict[str, list[Replay]] = {m: [] for m in methods}
+    for (method, _, _), replay in zip(jobs, replays, strict=True):
+        out[method].append(replay)
     return out, retrieve
 
 

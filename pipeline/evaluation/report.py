@@ -185,7 +185,7 @@ def run_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[s
     check_same_map(loc.occupancy, data)
     runs = query_runs(data, e.runs or None)
     results, retrieve = run_experiments(loc, data, runs, trials=e.trials, threshold_m=e.converge_threshold_m,
-                                        hold=e.converge_hold, progress=progress)
+                                        hold=e.converge_hold, progress=progress, workers=e.workers)
     fc = loc.filter_config
     summary = {m: summarise(results[m]) for m in results}
     doc = {"site": loc.manifest.get("site"), "bundle": str(inputs["bundle"]),

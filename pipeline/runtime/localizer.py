@@ -156,12 +156,13 @@ class Localizer:
         loc._unpacked = unpacked  # lives as long as the Localizer
         return loc
 
-    def retrieved(self, image) -> np.ndarray:
+    def retrieved(self, image, *, describer=None) -> np.ndarray:
         """(N, 3) x, y, theta: the image's Top-N database poses (N = retrieval.top_n), best first, after IPA
-        retrieval and RPA re-ranking."""
+        retrieval and RPA re-ranking. `describer`: another session of the bundle's detector graph (threads
+        describing frames side by side each use their own)."""
         from pipeline.retrieval.database import query_database
 
-        d = self.describer.describe(image)
+        d = (describer or self.describer).describe(image)
         r = self.retrieval
         regions = d.rpa[d.query_rows(r["query_regions"])]
         found = query_database(self.database, d.ipa, regions, top_n=r["top_n"],

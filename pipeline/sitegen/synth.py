@@ -67,7 +67,7 @@ def _lighting(preset: SitePreset, scene, rng, changed: bool):
                     exposure=float(exposure), tint=tint)
 
 
-def _save_jpeg(path: Path, rgb: np.ndarray) -> None:
+def save_jpeg(path: Path, rgb: np.ndarray) -> None:
     from PIL import Image
 
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -86,14 +86,15 @@ def build_scene(preset: SitePreset, seed: int, change: bool):
 
 
 def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, change: bool = False,
-              force: bool = False, progress: bool = True, allow_fallback: bool = True) -> Path:
-    """Write the reference site of `preset` to `outputs['out']`; returns that directory."""
+              force: bool = False, progress: bool = True, allow_fallback: bool = True,
+              workers: int | None = None) -> Path:
+    """Write the reference site of `preset` to `outputs['out']`; returns that directory. `workers`: rendering
+    processes (`pipeline.sitegen.render_pool`; None: the usable cores, at most 4; 1: this process). The
+    site written does not depend on it."""
     from pipeline.progress import progress_bar
     from pipeline.sitegen.assets import load_assets
-    from pipeline.sitegen.boxes import visible_boxes
-    from pipeline.sitegen.geometry import object_meshes, structure_meshes
     from pipeline.sitegen.laser import rasterise_map
-    from pipeline.sitegen.render import Renderer
+    from pipeline.sitegen.render_pool import RenderPool, View, default_workers, open_render_context
     from pipeline.sitegen.trajectories import sample_stops
 
     t_start = time.perf_counter()
@@ -103,39 +104,47 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
     stops = sample_stops(scene, occ_map, spacing=preset.stops.spacing, clearance=preset.stops.clearance,
                          jitter=preset.stops.jitter, seed=seed)
     k = intrinsics_of(preset)
-    objects = {o.instance_id: o for o in scene.objects}
     rng = np.random.default_rng(seed + 31)
-    meshes = structure_meshes(scene, library) + object_meshes(scene, library, library.textures["poster"])
     out = Path(outputs["out"])
-    stats = {"images": 0, "render_s": 0.0}
-    with atomic_dir(out, force=force) as tmp, Renderer(k) as renderer:
-        renderer.set_scene(meshes)
-        offsets = [2 * math.pi * v / preset.camera.views for v in range(preset.camera.views)]
-        rows, coco_images, coco_anns = [], [], []
-        for s, (x, y, heading) in enumerate(progress_bar(stops, desc="rendering stops", unit="stop", enabled=progress)):
-            lighting = _lighting(preset, scene, rng, change)
-            room, area = scene.room_at(x, y)
-            for v, off in enumerate(offsets):
-                theta = math.atan2(math.sin(heading + off), math.cos(heading + off))
-                pose = (x, y, preset.camera.height_m, theta)
-                t0 = time.perf_counter()
-                rgb, ids, _ = renderer.render(pose, lighting)
-                stats["render_s"] += time.perf_counter() - t0
-                stats["images"] += 1
-                rel = f"images/stop{s:04d}_v{v}.jpg"
-                _save_jpeg(tmp / rel, rgb)
-                rows.append({"image": rel, "stop_id": f"stop{s:04d}", "view": v, "x": round(x, 4), "y": round(y, 4),
-                             "theta": round(theta, 6), "room": room, "area": area})
-                image_id = len(coco_images) + 1
-                coco_images.append({"id": image_id, "file_name": rel, "width": k.width, "height": k.height})
-                for b in visible_boxes(ids, objects, k, pose, preset.render.min_box_area_px,
-                                       preset.render.min_visible_share):
-                    coco_anns.append({"id": len(coco_anns) + 1, "image_id": image_id,
-                                      "category_id": preset.furnishing.classes.index(b.cls) + 1,
-                                      "bbox": [b.x1, b.y1, b.x2 - b.x1, b.y2 - b.y1],
-                                      "area": (b.x2 - b.x1) * (b.y2 - b.y1), "iscrowd": 0,
-                                      "instance_id": b.instance_id, "visible_share": round(b.visible_share, 3)})
-        run_report = _write_runs(tmp, preset, scene, occ_map, stops, renderer, rng, seed, change, stats, progress)
+    workers = default_workers() if workers is None else max(1, int(workers))
+    stats = {"images": 0, "render_s": 0.0, "workers": workers}
+    with atomic_dir(out, force=force) as tmp:
+        ctx, renderer = open_render_context(preset, seed, change, allow_fallback, tmp, scene, library) \
+            if workers == 1 else (None, None)
+        try:
+            with RenderPool(preset, seed, change, allow_fallback, tmp, workers=workers, ctx=ctx) as pool:
+                offsets = [2 * math.pi * v / preset.camera.views for v in range(preset.camera.views)]
+                rows, coco_images, coco_anns, batches = [], [], [], []
+                for s, (x, y, heading) in enumerate(stops):
+                    lighting = _lighting(preset, scene, rng, change)  # drawn in stop order, whoever renders
+                    room, area = scene.room_at(x, y)
+                    views = []
+                    for v, off in enumerate(offsets):
+                        theta = math.atan2(math.sin(heading + off), math.cos(heading + off))
+                        rel = f"images/stop{s:04d}_v{v}.jpg"
+                        views.append(View((x, y, preset.camera.height_m, theta), rel, True))
+                        rows.append({"image": rel, "stop_id": f"stop{s:04d}", "view": v, "x": round(x, 4),
+                                     "y": round(y, 4), "theta": round(theta, 6), "room": room, "area": area})
+                        coco_images.append({"id": len(coco_images) + 1, "file_name": rel, "width": k.width,
+                                            "height": k.height})
+                    batches.append((lighting, views))
+                rendered = pool.map(batches)
+                for image_id, (seconds, boxes) in enumerate(
+                        (r for batch in progress_bar(rendered, total=len(batches), desc="rendering stops",
+                                                     unit="stop", enabled=progress) for r in batch), start=1):
+                    stats["render_s"] += seconds
+                    stats["images"] += 1
+                    for b in boxes:
+                        coco_anns.append({"id": len(coco_anns) + 1, "image_id": image_id,
+                                          "category_id": preset.furnishing.classes.index(b.cls) + 1,
+                                          "bbox": [b.x1, b.y1, b.x2 - b.x1, b.y2 - b.y1],
+                                          "area": (b.x2 - b.x1) * (b.y2 - b.y1), "iscrowd": 0,
+                                          "instance_id": b.instance_id, "visible_share": round(b.visible_share, 3)})
+                run_report = _write_runs(tmp, preset, scene, occ_map, stops, pool, rng, seed, change, stats,
+                                         progress)
+        finally:
+            if renderer is not None:
+                renderer.close()
         with (tmp / "captures.csv").open("w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=["image", "stop_id", "view", "x", "y", "theta", "room", "area"])
             writer.writeheader()
@@ -158,8 +167,11 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
         }
         write_text_atomic(tmp / "synth_report.json", json.dumps(report, indent=2) + "\n")
         # Timings differ from run to run, so they live apart from the reproducible outputs.
+        # render_s: summed over the workers' frames (with several workers it exceeds the rendering's wall time).
         timing = {"render_images_per_s": round(stats["images"] / max(stats["render_s"], 1e-9), 2),
-                  "render_s": round(stats["render_s"], 2), "wall_time_s": round(time.perf_counter() - t_start, 1),
+                  "render_s": round(stats["render_s"], 2), "render_workers": stats["workers"],
+                  "wall_time_s": round(time.perf_counter() - t_start, 1),
+                  "images_per_s": round(stats["images"] / max(time.perf_counter() - t_start, 1e-9), 2),
                   "machine": machine_summary()}
         write_text_atomic(tmp / "synth_timing.json", json.dumps(timing, indent=2) + "\n")
         write_text_atomic(tmp / "config.yaml", yaml.safe_dump(
@@ -175,9 +187,10 @@ def _count_boxes(anns: list[dict], preset: SitePreset) -> dict[str, int]:
     return counts
 
 
-def _write_runs(tmp: Path, preset, scene, occ_map, stops, renderer, rng, seed, change, stats, progress) -> dict:
+def _write_runs(tmp: Path, preset, scene, occ_map, stops, pool, rng, seed, change, stats, progress) -> dict:
     from pipeline.progress import progress_bar
     from pipeline.sitegen.laser import LaserScanner, displace_furniture, laser_poses, laser_world_grid, walking_people
+    from pipeline.sitegen.render_pool import View, chunks
     from pipeline.sitegen.trajectories import make_runs, reachable_mask, write_capture_run
 
     r, lz = preset.runs, preset.laser
@@ -187,6 +200,14 @@ def _write_runs(tmp: Path, preset, scene, occ_map, stops, renderer, rng, seed, c
                      seed=seed, noise=r.odometry_noise)
     report = {}
     person_room = reachable_mask(scene, occ_map, clearance=0.35)  # where people can walk: the same every run
+
+    def finish(run, ranges, views, rendered) -> None:
+        for batch in rendered:
+            stats["render_s"] += sum(seconds for seconds, _ in batch)
+            stats["images"] += len(batch)
+        write_capture_run(tmp / "runs" / run.name, run, ranges, [v.rel for v in views])
+
+    pending = None  # the previous run, whose frames the workers render while this run's scans are cast
     for k, run in enumerate(progress_bar(runs, desc="runs", unit="run", enabled=progress)):
         run_seed = seed * 1000 + k
         # Unmapped obstacles: chairs pushed away from where the map has them, people walking past.
@@ -197,18 +218,16 @@ def _write_runs(tmp: Path, preset, scene, occ_map, stops, renderer, rng, seed, c
                                noise_sigma=lz.noise_sigma, dropout=lz.dropout, seed=run_seed)
         ranges = scanner.cast_many(laser_poses(run.gt), discs=people)
         lighting = _lighting(preset, scene, rng, change)
-        names = []
-        for i, (x, y, theta) in enumerate(run.gt):
-            t0 = time.perf_counter()
-            rgb, _, _ = renderer.render((float(x), float(y), preset.camera.height_m, float(theta)), lighting)
-            stats["render_s"] += time.perf_counter() - t0
-            stats["images"] += 1
-            rel = f"images/runs/{run.name}/{i:04d}.jpg"
-            _save_jpeg(tmp / rel, rgb)
-            names.append(rel)
-        write_capture_run(tmp / "runs" / run.name, run, ranges, names)
+        views = [View((float(x), float(y), preset.camera.height_m, float(theta)), f"images/runs/{run.name}/{i:04d}.jpg",
+                      False) for i, (x, y, theta) in enumerate(run.gt)]
+        rendered = pool.map([(lighting, c) for c in chunks(views, 10)])
+        if pending is not None:
+            finish(*pending)
+        pending = (run, ranges, views, rendered)
         report[run.name] = {"kind": run.kind, "steps": len(run.gt), "kidnappings": int(np.sum(run.kidnapped)),
                             "moved_chairs": len(moved), "people": lz.people}
+    if pending is not None:
+        finish(*pending)
     return report
 
 

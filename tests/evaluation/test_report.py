@@ -66,7 +66,7 @@ def report(micro_sequence_bundle, tmp_path_factory):
     from pipeline.evaluation.report import run_evaluate
 
     cfg, ing, _, bundle = micro_sequence_bundle
-    cfg = cfg.model_copy(update={"evaluate": cfg.evaluate.model_copy(update={"trials": 2})})
+    cfg = cfg.model_copy(update={"evaluate": cfg.evaluate.model_copy(update={"trials": 2, "workers": 2})})
     out = run_evaluate(cfg, inputs={"bundle": bundle, "data": ing}, outputs={"out": tmp_path_factory.mktemp("r") / "o"},
                        progress=False)
     return cfg, ing, bundle, out
@@ -167,12 +167,17 @@ def test_image_only_and_table1_match_a_fresh_localizer(report):
     assert np.all(near < 5 * loc.filter_config.init_std_xy)  # each one a perturbation of a retrieved pose
 
 
-def test_same_inputs_give_the_same_report(report, tmp_path):
+def test_same_inputs_give_the_same_report_in_one_process_or_several(report, tmp_path):
     from pipeline.evaluation.report import run_evaluate
+    from pipeline.io import tables
 
-    cfg, ing, bundle, out = report
-    cfg = cfg.model_copy(update={"evaluate": cfg.evaluate.model_copy(update={"trials": 2})})
+    cfg, ing, bundle, out = report  # replayed in 2 processes
+    cfg = cfg.model_copy(update={"evaluate": cfg.evaluate.model_copy(update={"trials": 2, "workers": 1})})
     again = run_evaluate(cfg, inputs={"bundle": bundle, "data": ing}, outputs={"out": tmp_path / "o"}, progress=False)
+    for path in sorted((out / "estimates").glob("*.parquet")):  # every step of every replay, timings aside
+        a, b = (tables.read_table(d / "estimates" / path.name, "estimates").drop_columns(["update_ms"])
+                for d in (out, again))
+        assert a.equals(b), path.name
     a, b = (json.loads((p / "metrics.json").read_text()) for p in (out, again))
     for d in (a, b):
         for key in ("seconds", "machine", "retrieval"):

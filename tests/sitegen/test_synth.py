@@ -49,7 +49,7 @@ def digests(root: Path) -> dict[str, str]:
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory) -> Path:
-    return synth(tmp_path_factory.mktemp("synth") / "site")
+    return synth(tmp_path_factory.mktemp("synth") / "site", workers=2)  # rendered in two processes
 
 
 @pytest.fixture(scope="module")
@@ -65,12 +65,13 @@ def captures(site: Path) -> list[dict]:
 
 
 def test_same_seed_same_bytes_and_another_seed_another_site(site, tmp_path):
-    again = digests(synth(tmp_path / "again"))
+    again = digests(synth(tmp_path / "again", workers=1))  # rendered here, in one process
     assert again == digests(site)
     assert {"site.yaml", "map.yaml", "map.pgm", "captures.csv", "annotations.json", "contact_sheet.png",
             "config.yaml", "synth_report.json", "runs/query_00/scans.npy"} <= set(again)
     timing = json.loads((site / TIMING_FILE).read_text())
     assert timing["render_images_per_s"] > 0 and timing["wall_time_s"] > 0 and "cores" in timing["machine"]
+    assert timing["render_workers"] == 2
 
 
 def test_ingest_accepts_the_output_unchanged(site, ingested):
