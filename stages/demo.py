@@ -12,14 +12,15 @@ from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, l
 HELP = """Run the main job end to end on data that ships with the project.
 
 This renders the reference site of the config (`synth.site`: office for the demo preset, a micro
-site for ci; see `siteloc synth`) and ingests it, fine-tunes the detector on it and scores it on the
-held-out stops (`siteloc train-detector`, `evaluate-detector`; about 6 minutes on 2 cores for the demo
-preset), extracts IPA / RPA descriptors (`siteloc extract`; about 2.5 minutes on 2 cores for the
-office site), builds and measures the retrieval database (`build-index`, `evaluate-retrieval`), encodes the run
-frames and trains the image-sequence LSTM on the mapping runs (`siteloc frame-features`,
-`train-sequence`; about 2 minutes), exports the deployable bundle with it (`siteloc export
---sequence`), localizes the site's query runs from the bundle alone, camera
-frames included, beside the paper's baselines, and writes the report (`siteloc evaluate`). Then it
+site for ci; see `siteloc synth`; about 5.5 minutes on 2 cores for the office site) and ingests it,
+fine-tunes the detector on it and scores it on the held-out stops (`siteloc train-detector`,
+`evaluate-detector`; about 7.5 minutes), extracts IPA / RPA descriptors (`siteloc extract`; about 2
+minutes), builds and measures the retrieval database (`build-index`, `evaluate-retrieval`), encodes the
+run frames and trains the image-sequence LSTM on the mapping runs (`siteloc frame-features`,
+`train-sequence`; about 1 minute), exports the deployable bundle with it (`siteloc export
+--sequence`), localizes the site's query runs from the bundle alone, camera frames included, beside
+the paper's baselines, and writes the report (`siteloc evaluate`; about 2 minutes). 19.5 minutes in all
+on 2 cores (2026-12-02). Then it
 ingests every real CARMEN laser log in ../shared/data/carmen (`siteloc ingest-log`) and the example
 capture directory of docs/example-site, and prints a summary.
 

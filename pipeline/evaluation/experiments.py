@@ -189,8 +189,9 @@ def run_experiments(loc, data: Path, runs: list, *, trials: int, threshold_m: fl
     """Every method (or those named) on every run and trial; returns {method: [Replay]} and the retrieval
     cache (pass it back as `retrieve` to replay other settings without describing the frames again).
 
-    `workers` > 1 (None: the usable cores, at most 8) describes every frame first, in that many threads, and
-    replays in that many processes (`pipeline.evaluation.parallel`); the replays are the same either way."""
+    Every camera frame is described and retrieved first (in `workers` threads); `workers` > 1 (None: the
+    usable cores, at most 8) then replays in that many processes (`pipeline.evaluation.parallel`); the
+    replays are the same either way."""
     from pipeline.progress import progress_bar
 
     retrieve = retrieve or CachedRetrieval(loc)
@@ -206,10 +207,11 @@ def run_experiments(loc, data: Path, runs: list, *, trials: int, threshold_m: fl
 
         workers = thread_layout()[0]
     workers = max(1, min(workers, len(jobs)))
-    if workers > 1:
-        from pipeline.evaluation.parallel import prefetch_retrievals, replay_in_processes
+    from pipeline.evaluation.parallel import prefetch_retrievals, replay_in_processes
 
-        prefetch_retrievals(loc, data, runs, retrieve, threads=workers, progress=progress)
+    # Up front, so that no method's update times include describing frames (each is described once for all).
+    prefetch_retrievals(loc, data, runs, retrieve, threads=workers, progress=progress)
+    if workers > 1:
         replays = replay_in_processes(loc, data, runs, jobs, retrieve, workers=workers, threshold_m=threshold_m,
                                       hold=hold, progress=progress)
     else:

@@ -7,7 +7,8 @@ single-threaded Python, numpy and numba, so processes rather than threads:
 
 1. `prefetch_retrievals`: every frame of the runs is described and searched once in the parent, in
    `threads` threads with a single-threaded session of the bundle's detector graph each (onnxruntime
-   releases the GIL), into the shared `CachedRetrieval`.
+   releases the GIL), into the shared `CachedRetrieval` (with one worker too: no method's update times
+   then include describing frames).
 2. `replay_in_processes`: `workers` spawned processes (onnxruntime sessions must not cross a fork) each
    open the bundle again (checksums verified; the range table comes from the on-disk cache), take the
    parent's filter settings and the retrieval cache, and replay jobs as they come. The sequence model's frame
@@ -38,7 +39,9 @@ def prefetch_retrievals(loc, data: Path, runs: list, retrieve, *, threads: int, 
 
     def one(key: str):
         describer = getattr(local, "describer", None)
-        if describer is None:
+        if describer is None and threads == 1:
+            describer = local.describer = loc.describer  # one thread: the Localizer's own session, all cores
+        elif describer is None:
             models = Path(loc.root) / "models"
             describer = local.describer = OnnxDescriber(models / "describer.onnx", models / "describer.json",
                                                         threads=1)
