@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/detector.py [--device auto|cpu|cuda] [--train-iters 4] [--infer-images 8]
                                             [--batch 2] [--backbones vgg16,efficientnet_lite0]
+                                            [--channels-last]
 
 Both detectors are built by `pipeline.detection.builders.build_detector` with 9 classes and the
 network's input size pinned to the image size (min_size / max_size set so nothing is resized): 224 x 224
@@ -10,6 +11,8 @@ after one warm-up step (the paper's frozen layers stay frozen, so this is the re
 Inference: eval mode, batch 1, no gradients, after one warm-up image, 300 proposals as in the paper.
 Weights do not change the timings; pretrained ones are used where they are available offline.
 Prints the machine, then a table and each backbone's speed as a ratio to vgg16 measured in the same run.
+With `--channels-last`, Lite0 is also timed with its trunk in channels-last (`use_channels_last`, what
+`train-detector` does) and its ratio to the standard layout printed.
 """
 
 from __future__ import annotations
@@ -64,11 +67,15 @@ def _sync(device) -> None:
         torch.cuda.synchronize()
 
 
-def train_rate(backbone: str, size, device, iters: int, batch: int, amp: bool) -> float:
+def train_rate(backbone: str, size, device, iters: int, batch: int, amp: bool, channels_last: bool = False) -> float:
     import torch
+
+    from pipeline.detection.builders import use_channels_last
 
     gen = torch.Generator().manual_seed(0)
     model = _model(backbone, size, device).train()
+    if channels_last:
+        use_channels_last(model)
     opt = torch.optim.SGD([p for p in model.parameters() if p.requires_grad], lr=1e-3, momentum=0.9)
     scaler = torch.amp.GradScaler("cuda", enabled=amp)
     t0 = None
@@ -111,6 +118,7 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=2)
     ap.add_argument("--backbones", default="vgg16,efficientnet_lite0")
     ap.add_argument("--no-amp", action="store_true", help="on a GPU: time float32 instead of float16 autocast")
+    ap.add_argument("--channels-last", action="store_true", help="also train Lite0 with a channels-last trunk")
     args = ap.parse_args()
 
     import torch
@@ -136,6 +144,12 @@ def main() -> None:
             rows[(backbone, name)] = (tr, inf)
             print(f"{backbone:<19} {name:>8}  train {tr:7.2f} it/s ({tr * args.batch:7.2f} img/s)  "
                   f"inference {inf:7.2f} img/s", flush=True)
+    if args.channels_last and "efficientnet_lite0" in backbones:
+        print("\nLite0 training with a channels-last trunk, ratio to the standard layout timed above:")
+        for name, size in SIZES.items():
+            tr = train_rate("efficientnet_lite0", size, device, args.train_iters, args.batch, amp, channels_last=True)
+            base = rows[("efficientnet_lite0", name)][0]
+            print(f"{'efficientnet_lite0':<19} {name:>8}  train {tr:7.2f} it/s  x{tr / base:5.2f}", flush=True)
     if "vgg16" in backbones and len(backbones) > 1:
         print("\nratio to vgg16 in this run (higher is faster):")
         for backbone in backbones:

@@ -88,6 +88,7 @@ def replay_in_processes(loc, data: Path, runs: list, jobs: list[tuple[str, int, 
     """The Replay of each (method, run index, trial) job, in job order, from `workers` processes."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
 
     from pipeline.progress import progress_bar
 
@@ -95,10 +96,17 @@ def replay_in_processes(loc, data: Path, runs: list, jobs: list[tuple[str, int, 
             dict(retrieve.cache), str(data), runs, threshold_m, hold)
     bar = progress_bar(total=len(jobs), desc=f"experiments ({workers} processes)", unit="replay", enabled=progress)
     out = []
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
-                             initargs=args) as pool:
-        for replay in pool.map(_replay, jobs):
-            out.append(replay)
-            bar.update(1)
-    bar.close()
+    try:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=_start_worker, initargs=args) as pool:
+            for replay in pool.map(_replay, jobs):
+                out.append(replay)
+                bar.update(1)
+    except BrokenProcessPool as exc:
+        from pipeline.errors import SitelocError
+
+        raise SitelocError(f"a replay process died ({exc}; its own error, if any, is printed above); rerun with "
+                           f"--set evaluate.workers=1 to replay in this process") from None
+    finally:
+        bar.close()
     return out

@@ -119,6 +119,12 @@ class RenderPool:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
 
+            from pipeline.sitegen.render import RenderError, egl_available
+
+            ok, why = egl_available()  # here, so that a missing EGL is one clear error, not a broken pool
+            if not ok:
+                raise RenderError(why)
+
             self._pool = ProcessPoolExecutor(
                 self.workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
                 initargs=(preset.model_dump(mode="json"), seed, change, allow_fallback, str(root)))
@@ -130,7 +136,7 @@ class RenderPool:
         rendered as the iterator reaches it."""
         if self._pool is None:
             return (render_views(self.ctx, lighting, views) for lighting, views in batches)
-        return self._pool.map(_work, batches)
+        return _worker_errors(self._pool.map(_work, batches))
 
     def close(self) -> None:
         if self._pool is not None:
@@ -142,6 +148,18 @@ class RenderPool:
 
     def __exit__(self, *exc_info: object) -> None:
         self.close()
+
+
+def _worker_errors(results: Iterator) -> Iterator:
+    from concurrent.futures.process import BrokenProcessPool
+
+    from pipeline.sitegen.render import RenderError
+
+    try:
+        yield from results
+    except BrokenProcessPool as exc:
+        raise RenderError(f"a rendering process died ({exc}; its own error, if any, is printed above); rerun with "
+                          f"--workers 1 to render in this process") from None
 
 
 def chunks(views: list[View], size: int) -> list[list[View]]:

@@ -74,6 +74,27 @@ def test_same_seed_same_bytes_and_another_seed_another_site(site, tmp_path):
     assert timing["render_workers"] == 2
 
 
+def test_a_rendering_pool_fails_with_a_clear_error(tmp_path, monkeypatch):
+    from concurrent.futures.process import BrokenProcessPool
+
+    import pipeline.sitegen.render as render
+    from pipeline.sitegen.render import RenderError
+    from pipeline.sitegen.render_pool import _worker_errors
+
+    def died():
+        yield [(0.1, None)]
+        raise BrokenProcessPool("a child process terminated abruptly")
+
+    got = _worker_errors(died())
+    assert next(got) == [(0.1, None)]
+    with pytest.raises(RenderError, match="rendering process died.*--workers 1"):
+        next(got)
+    monkeypatch.setattr(render, "egl_available", lambda: (False, "cannot create a headless OpenGL 3.3 context"))
+    with pytest.raises(RenderError, match="headless OpenGL"):  # before any process is started
+        synth(tmp_path / "site", workers=2)
+    assert not (tmp_path / "site").exists()
+
+
 def test_ingest_accepts_the_output_unchanged(site, ingested):
     images = tables.read_table(ingested / "images.parquet", "images").to_pylist()
     rows = captures(site)
