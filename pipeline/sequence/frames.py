@@ -92,8 +92,9 @@ def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     from pipeline.onnx_threads import resolve_engine
 
     device = pick_device(s.device)
-    enc = FrameEncoder(s.frame_weights, s.frame_size, device=str(device))
     engine = resolve_engine(s.engine, device.type)
+    # onnxruntime runs on the CPU here: the torch encoder it is checked against lives there too.
+    enc = FrameEncoder(s.frame_weights, s.frame_size, device="cpu" if engine == "onnx" else str(device))
     matrix, graphs = _encode_frames(enc, engine, [data / f[2] for f in frames], s.batch, cfg.export.parity_images,
                                     progress)
     cols = {"run": [f[0] for f in frames], "step": [f[1] for f in frames], "image_id": [f[2] for f in frames],
