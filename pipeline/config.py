@@ -337,7 +337,7 @@ class RetrievalConfig(Strict):
     device: str = Field("auto", description="auto (a GPU when torch sees one), cpu, cuda or cuda:N")
     engine: Literal["auto", "torch", "onnx"] = Field(
         "auto", description="what runs the detector in `extract`: onnx (the exported graph, checked against torch "
-        "on export.parity_images images of each size, one image per thread; 2.5x faster on a CPU), torch, or auto "
+        "on export.parity_images images of each size, one image per thread; 2.7x faster on a CPU), torch, or auto "
         "(onnx on the CPU, torch on a GPU)")
     whitening: Literal["pca", "learned", "none"] = Field("pca", description="fitted on the database descriptors")
     ipa_dims: int | None = Field(None, ge=1, description="whitened IPA dimension (null: all the data supports)")

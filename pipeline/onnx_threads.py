@@ -1,9 +1,9 @@
 """Offline CPU inference through onnxruntime: one exported graph per image size, run in several threads.
 
 `extract` and `frame-features` describe thousands of images with networks the bundle later carries as ONNX.
-On a CPU, onnxruntime runs them 2.5-3.5x faster than eager torch (EfficientNet-Lite0's depthwise
-convolutions are where torch loses; `benchmarks/offline_inference.py` measures it), and gains again from
-running one image per thread rather than one image on every thread (small convolutions do not split well).
+On 2 CPU cores onnxruntime runs them 2.0-3.3x faster than eager torch with one session using both cores
+(EfficientNet-Lite0's depthwise convolutions are where torch loses), and 2.7-3.9x with one single-threaded
+session per core, one image each (small convolutions do not split well); `benchmarks/offline_inference.py`.
 So each stage exports its network at the size of the images it meets, checks the graph against torch on the
 first images of that size (the stage fails beyond the check's tolerance, nothing is written), and then
 describes every image through onnxruntime, which releases the GIL while it runs.

@@ -9,7 +9,7 @@
 On a CPU (`retrieval.engine: auto`) the images are described through onnxruntime: the detector is exported
 as the graph the bundle carries (`pipeline.detection.onnx_export`), checked against torch on the first
 images of each size (export's tolerances; the report keeps the figures), and run in several threads, so the
-database is described by the same graph and the same numpy code as a robot's camera image, 2.5x faster
+database is described by the same graph and the same numpy code as a robot's camera image, 2.7x faster
 than eager torch on 2 cores. On a GPU, torch describes batches of `retrieval.batch` images.
 
 Whitening is not applied here: it is fitted on the database by `siteloc build-index`, so one
