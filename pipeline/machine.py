@@ -21,6 +21,13 @@ def usable_cores() -> int | str:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "?"
 
 
+def usable_core_count() -> int:
+    """The cores this process may run on (the affinity mask where the OS has one, else the CPU count):
+    how many workers a stage starts."""
+    cores = usable_cores()
+    return cores if isinstance(cores, int) else (os.cpu_count() or 1)
+
+
 def machine_info() -> list[str]:
     """Lines for a benchmark's header: platform, CPU, cores, Python and numpy versions."""
     import numpy as np

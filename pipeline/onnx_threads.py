@@ -36,10 +36,10 @@ def resolve_engine(engine: str, device_type: str) -> str:
 
 def thread_layout(cores: int | None = None) -> tuple[int, int]:
     """(worker threads, onnxruntime intra-op threads per worker) filling `cores` (default: the usable ones)."""
-    import os
-
     if cores is None:
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        from pipeline.machine import usable_core_count
+
+        cores = usable_core_count()
     workers = max(1, min(int(cores), MAX_WORKERS))
     return workers, max(1, int(cores) // workers)
 

@@ -77,21 +77,18 @@ def onnx_describer(det, workdir: Path, *, rpa_proposals: int, rpa_min_score: flo
     """A `SizedGraphPool` describing image files through the detector's exported ONNX graph."""
     import torch
 
-    from pipeline.detection.onnx_export import OUTPUTS, check_parity, export_describer
+    from pipeline.detection.onnx_export import check_parity, export_describer
     from pipeline.onnx_threads import SizedGraphPool
+    from pipeline.runtime.describer import describe_with
 
     def build(hw: tuple[int, int], images: list, path: Path) -> dict:
         meta = export_describer(det, hw, path)
+        meta.update(rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score)
         meta["parity"] = check_parity(det, path, meta, [torch.from_numpy(im) for im in images],
                                       rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score)
         return meta
 
-    def run(session, image: np.ndarray, meta: dict) -> ImageDescriptors:
-        out = session.run(list(OUTPUTS), {"image": image})
-        return describe_outputs(out[0], tuple(meta["scale"]), meta["stride"], *out[1:], rpa_proposals=rpa_proposals,
-                                rpa_min_score=rpa_min_score)
-
-    return SizedGraphPool("describer", workdir, build, run, samples=samples, layout=layout)
+    return SizedGraphPool("describer", workdir, build, describe_with, samples=samples, layout=layout)
 
 
 def _fingerprint(model_dir: Path, images: list[ImageRecord], settings: dict) -> str:

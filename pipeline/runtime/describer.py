@@ -38,6 +38,15 @@ def camera_image(image, image_hw: tuple[int, int], graph: str) -> np.ndarray:
     return x
 
 
+def describe_with(session, image: np.ndarray, meta: dict) -> ImageDescriptors:
+    """IPA and RPA of one (3, H, W) image through an onnxruntime session of the detector graph, `meta` being
+    its describer.json (scale, stride, rpa_proposals, rpa_min_score). `extract` describes the database with
+    this too."""
+    out = session.run(list(OUTPUTS), {"image": image})
+    return describe_outputs(out[0], tuple(meta["scale"]), meta["stride"], *out[1:],
+                            rpa_proposals=meta["rpa_proposals"], rpa_min_score=meta["rpa_min_score"])
+
+
 class OnnxDescriber:
     def __init__(self, onnx_path: Path, meta_path: Path, *, threads: int | None = None):
         import onnxruntime as ort
@@ -50,7 +59,4 @@ class OnnxDescriber:
         self.image_hw = tuple(self.meta["image_hw"])
 
     def describe(self, image) -> ImageDescriptors:
-        x = camera_image(image, self.image_hw, "detector")
-        out = self.session.run(list(OUTPUTS), {"image": x})
-        return describe_outputs(out[0], tuple(self.meta["scale"]), self.meta["stride"], *out[1:],
-                                rpa_proposals=self.meta["rpa_proposals"], rpa_min_score=self.meta["rpa_min_score"])
+        return describe_with(self.session, camera_image(image, self.image_hw, "detector"), self.meta)

@@ -58,10 +58,9 @@ def render_views(ctx: RenderContext, lighting, views: list[View]) -> list[tuple[
 
 
 def default_workers() -> int:
-    import os
+    from pipeline.machine import usable_core_count
 
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, min(cores, MAX_WORKERS))
+    return max(1, min(usable_core_count(), MAX_WORKERS))
 
 
 _WORKER: dict = {}
@@ -74,8 +73,7 @@ def _start_worker(preset_json: dict, seed: int, change: bool, allow_fallback: bo
     from pipeline.sitegen.presets import SitePreset
 
     preset = SitePreset.model_validate(preset_json)
-    ctx, closer = open_render_context(preset, seed, change, allow_fallback, Path(root))
-    _WORKER.update(ctx=ctx, closer=closer)
+    _WORKER["ctx"], _ = open_render_context(preset, seed, change, allow_fallback, Path(root))  # lives with the process
 
 
 def _work(batch):
@@ -109,12 +107,13 @@ def open_render_context(preset, seed: int, change: bool, allow_fallback: bool, r
 class RenderPool:
     """`map(batches)`: each (lighting, [View]) batch rendered, saved and boxed, results in order.
 
-    With `workers` > 1, spawned processes render (see the module's docstring); otherwise `ctx` does, here.
+    With `workers` > 1, spawned processes render (see the module's docstring); otherwise a renderer here does,
+    with the caller's `scene` and `library` when given (built from the preset and seed when not).
     """
 
     def __init__(self, preset, seed: int, change: bool, allow_fallback: bool, root: Path, *, workers: int,
-                 ctx: RenderContext | None = None):
-        self.workers, self.ctx, self._pool = int(workers), ctx, None
+                 scene=None, library=None):
+        self.workers, self.ctx, self._renderer, self._pool = int(workers), None, None, None
         if self.workers > 1:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
@@ -128,8 +127,9 @@ class RenderPool:
             self._pool = ProcessPoolExecutor(
                 self.workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
                 initargs=(preset.model_dump(mode="json"), seed, change, allow_fallback, str(root)))
-        elif ctx is None:
-            raise ValueError("a RenderPool of one worker renders with the caller's RenderContext: pass ctx")
+        else:
+            self.ctx, self._renderer = open_render_context(preset, seed, change, allow_fallback, Path(root), scene,
+                                                           library)
 
     def map(self, batches: Iterable[tuple[object, list[View]]]) -> Iterator[list[tuple[float, list | None]]]:
         """With workers, every batch is submitted now and rendered while the caller goes on; here, each is
@@ -142,6 +142,9 @@ class RenderPool:
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
 
     def __enter__(self) -> RenderPool:
         return self

@@ -94,7 +94,7 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
     from pipeline.progress import progress_bar
     from pipeline.sitegen.assets import load_assets
     from pipeline.sitegen.laser import rasterise_map
-    from pipeline.sitegen.render_pool import RenderPool, View, default_workers, open_render_context
+    from pipeline.sitegen.render_pool import RenderPool, View, default_workers
     from pipeline.sitegen.trajectories import sample_stops
 
     t_start = time.perf_counter()
@@ -109,42 +109,37 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
     workers = default_workers() if workers is None else max(1, int(workers))
     stats = {"images": 0, "render_s": 0.0, "workers": workers}
     with atomic_dir(out, force=force) as tmp:
-        ctx, renderer = open_render_context(preset, seed, change, allow_fallback, tmp, scene, library) \
-            if workers == 1 else (None, None)
-        try:
-            with RenderPool(preset, seed, change, allow_fallback, tmp, workers=workers, ctx=ctx) as pool:
-                offsets = [2 * math.pi * v / preset.camera.views for v in range(preset.camera.views)]
-                rows, coco_images, coco_anns, batches = [], [], [], []
-                for s, (x, y, heading) in enumerate(stops):
-                    lighting = _lighting(preset, scene, rng, change)  # drawn in stop order, whoever renders
-                    room, area = scene.room_at(x, y)
-                    views = []
-                    for v, off in enumerate(offsets):
-                        theta = math.atan2(math.sin(heading + off), math.cos(heading + off))
-                        rel = f"images/stop{s:04d}_v{v}.jpg"
-                        views.append(View((x, y, preset.camera.height_m, theta), rel, True))
-                        rows.append({"image": rel, "stop_id": f"stop{s:04d}", "view": v, "x": round(x, 4),
-                                     "y": round(y, 4), "theta": round(theta, 6), "room": room, "area": area})
-                        coco_images.append({"id": len(coco_images) + 1, "file_name": rel, "width": k.width,
-                                            "height": k.height})
-                    batches.append((lighting, views))
-                rendered = pool.map(batches)
-                for image_id, (seconds, boxes) in enumerate(
-                        (r for batch in progress_bar(rendered, total=len(batches), desc="rendering stops",
-                                                     unit="stop", enabled=progress) for r in batch), start=1):
-                    stats["render_s"] += seconds
-                    stats["images"] += 1
-                    for b in boxes:
-                        coco_anns.append({"id": len(coco_anns) + 1, "image_id": image_id,
-                                          "category_id": preset.furnishing.classes.index(b.cls) + 1,
-                                          "bbox": [b.x1, b.y1, b.x2 - b.x1, b.y2 - b.y1],
-                                          "area": (b.x2 - b.x1) * (b.y2 - b.y1), "iscrowd": 0,
-                                          "instance_id": b.instance_id, "visible_share": round(b.visible_share, 3)})
-                run_report = _write_runs(tmp, preset, scene, occ_map, stops, pool, rng, seed, change, stats,
-                                         progress)
-        finally:
-            if renderer is not None:
-                renderer.close()
+        with RenderPool(preset, seed, change, allow_fallback, tmp, workers=workers, scene=scene,
+                        library=library) as pool:
+            offsets = [2 * math.pi * v / preset.camera.views for v in range(preset.camera.views)]
+            rows, coco_images, coco_anns, batches = [], [], [], []
+            for s, (x, y, heading) in enumerate(stops):
+                lighting = _lighting(preset, scene, rng, change)  # drawn in stop order, whoever renders
+                room, area = scene.room_at(x, y)
+                views = []
+                for v, off in enumerate(offsets):
+                    theta = math.atan2(math.sin(heading + off), math.cos(heading + off))
+                    rel = f"images/stop{s:04d}_v{v}.jpg"
+                    views.append(View((x, y, preset.camera.height_m, theta), rel, True))
+                    rows.append({"image": rel, "stop_id": f"stop{s:04d}", "view": v, "x": round(x, 4),
+                                 "y": round(y, 4), "theta": round(theta, 6), "room": room, "area": area})
+                    coco_images.append({"id": len(coco_images) + 1, "file_name": rel, "width": k.width,
+                                        "height": k.height})
+                batches.append((lighting, views))
+            rendered = pool.map(batches)
+            for image_id, (seconds, boxes) in enumerate(
+                    (r for batch in progress_bar(rendered, total=len(batches), desc="rendering stops",
+                                                 unit="stop", enabled=progress) for r in batch), start=1):
+                stats["render_s"] += seconds
+                stats["images"] += 1
+                for b in boxes:
+                    coco_anns.append({"id": len(coco_anns) + 1, "image_id": image_id,
+                                      "category_id": preset.furnishing.classes.index(b.cls) + 1,
+                                      "bbox": [b.x1, b.y1, b.x2 - b.x1, b.y2 - b.y1],
+                                      "area": (b.x2 - b.x1) * (b.y2 - b.y1), "iscrowd": 0,
+                                      "instance_id": b.instance_id, "visible_share": round(b.visible_share, 3)})
+            run_report = _write_runs(tmp, preset, scene, occ_map, stops, pool, rng, seed, change, stats,
+                                     progress)
         with (tmp / "captures.csv").open("w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=["image", "stop_id", "view", "x", "y", "theta", "room", "area"])
             writer.writeheader()
