@@ -36,7 +36,7 @@ def demo(
     carmen_dir: Annotated[
         Path | None,
         typer.Option(
-            "--carmen-dir", help="Folder of CARMEN logs [default: ../shared/data/carmen or $SITELOC_CARMEN_DIR]."
+            "--carmen-dir", help="Folder of CARMEN logs \\[default: ../shared/data/carmen or $SITELOC_CARMEN_DIR]."
         ),
     ] = None,
     models: Annotated[Path, typer.Option("--models", "-m", help="Where trained models go.")] = Path("models"),

@@ -40,12 +40,13 @@ Example: siteloc evaluate bundles/office-0.1.0 data/reference/ingested --out rep
 def evaluate(
     bundle: Annotated[Path, typer.Argument(help="A bundle from `siteloc export`.", show_default=False)],
     data: Annotated[Path, typer.Argument(help="The ingested site with query runs.", show_default=False)],
-    out: Annotated[Path | None, typer.Option("--out", "-o", help="Output directory [default: reports/<site>].")] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o",
+                                             help="Output directory \\[default: reports/<site>].")] = None,
     run: Annotated[
-        list[str] | None, typer.Option("--run", "-r", help="Replay only this run (repeatable) [default: query_*].")
+        list[str] | None, typer.Option("--run", "-r", help="Replay only this run (repeatable) \\[default: query_*].")
     ] = None,
     trials: Annotated[int | None, typer.Option("--trials", min=1, help="Replays per run and method "
-                                               "[default: evaluate.trials].")] = None,
+                                               "\\[default: evaluate.trials].")] = None,
     config: ConfigOpt = "demo",
     set_: SetOpt = None,
     force: ForceOpt = False,

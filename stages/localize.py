@@ -45,7 +45,7 @@ def localize(
     data: Annotated[Path, typer.Argument(help="Dataset directory (map.yaml + runs/).", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)],
     run: Annotated[
-        list[str] | None, typer.Option("--run", "-r", help="Replay only this run (repeatable) [default: all].")
+        list[str] | None, typer.Option("--run", "-r", help="Replay only this run (repeatable) \\[default: all].")
     ] = None,
     init: Annotated[str, typer.Option("--init", help="uniform, pose, candidates or retrieval.")] = "uniform",
     trials: Annotated[int, typer.Option("--trials", min=1, help="Replays per run, with seeds seed..seed+N-1.")] = 1,

@@ -41,11 +41,11 @@ def synth(
         str | None,
         typer.Option(
             "--preset", "-p", show_default=False,
-            help="Site preset: tiny, office, paper, or a YAML path [default: the config's synth.site].",
+            help="Site preset: tiny, office, paper, or a YAML path \\[default: the config's synth.site].",
         ),
     ] = None,
     seed: Annotated[
-        int | None, typer.Option("--seed", help="Seed [default: the config's synth.seed].", show_default=False)
+        int | None, typer.Option("--seed", help="Seed \\[default: the config's synth.seed].", show_default=False)
     ] = None,
     change: Annotated[
         bool, typer.Option("--change", help="Write the building after an environment change.")
@@ -60,7 +60,7 @@ def synth(
     ] = None,
     workers: Annotated[
         int | None, typer.Option("--workers", "-w", min=1, show_default=False,
-                                 help="Rendering processes [default: the usable cores, at most 4; 1: this process].")
+                                 help="Rendering processes \\[default: the usable cores, at most 4; 1: this process].")
     ] = None,
     config: ConfigOpt = "demo",
     force: ForceOpt = False,

@@ -43,6 +43,25 @@ def test_every_command_explains_itself(argv):
     assert len(body.split()) >= 8, f"help of {' '.join(argv)} is too thin:\n{result.output}"
 
 
+@pytest.mark.parametrize("argv", commands(), ids=lambda a: " ".join(a))
+def test_bracketed_option_help_survives_rich_markup(argv):
+    """Rich reads "[default: x]" in a help string as a style tag and drops it; escaped (\\[) it is shown."""
+    import re
+
+    import typer.main
+
+    cmd = typer.main.get_command(app)
+    for name in argv:
+        cmd = cmd.commands[name]
+    result = runner.invoke(app, [*argv, "--help"], env={"COLUMNS": "250"})
+    shown = " ".join(result.output.split())
+    for param in cmd.params:
+        text = getattr(param, "help", None) or ""
+        assert not re.search(r"(?<!\\)\[[a-z]", text), f"{' '.join(argv)} {param.name}: escape '[' in {text!r}"
+        for inner in re.findall(r"\\\[([^\]]*)\]", text):
+            assert " ".join(f"[{inner}]".split()) in shown, f"{' '.join(argv)} {param.name}: [{inner}] not shown"
+
+
 def test_help_does_not_import_heavy_libraries():
     code = (
         "import sys; from stages.app import app; "
