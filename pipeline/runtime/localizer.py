@@ -126,6 +126,13 @@ class Localizer:
         from pipeline.runtime.scancheck import Rivals
 
         self._rivals = Rivals()
+        from pipeline.runtime.evidence import ImageEvidence
+
+        self._evidence = ImageEvidence()
+        # Its own stream: weighing evidence leaves the filter's draws as they would be without it.
+        self._evidence_rng = np.random.default_rng((self.filter_config.seed, 0xE71D))
+        self._evidence_images = 0  # updates with an image and a scan, for filter.evidence.every
+        self._ranked_for, self._ranked = None, None
         if getattr(self, "sequence", None) is not None:
             self.sequence.keep_last(0)
 
@@ -169,6 +176,12 @@ class Localizer:
                                weights=tuple(r["candidate_weights"]), rerank=r.get("rerank", True))
         return self.database.db.poses[found.ranked]
 
+    def _retrieved_now(self, image) -> np.ndarray:
+        """`retrieved(image)`, computed once per update however many steps of it ask."""
+        if self._ranked_for is not image:
+            self._ranked, self._ranked_for = self.retrieved(image), image
+        return self._ranked
+
     def candidates(self, image) -> np.ndarray:
         """(K, 4) x, y, theta, weight: the image's Top-K poses (K = len(candidate_weights)), weights normalised."""
         return weighted_candidates(self.retrieved(image), self.retrieval["candidate_weights"])
@@ -211,7 +224,7 @@ class Localizer:
         k = max(sc.pool, len(weights))
         pools, spreads, priors = [], [], []
         for source in sources:
-            pool = self.sequence.ranked(k) if source == "sequence" else self.retrieved(image)
+            pool = self.sequence.ranked(k) if source == "sequence" else self._retrieved_now(image)
             deg = fcfg.sequence_heading_std_deg if source == "sequence" else None
             pools.append(pool[: sc.pool] if sc.pool else pool)
             spreads.append(np.full(len(pools[-1]), np.radians(deg if deg is not None else fcfg.init_std_theta_deg)))
@@ -235,7 +248,7 @@ class Localizer:
         gets `particles` particles. Returns those (K, 4: x, y, theta, weight) or None."""
         fcfg = self.filter_config
         ch = fcfg.challenge
-        won = self._rivals.check(self.verifier, self.map, estimate, self.retrieved(image)[: ch.pool],
+        won = self._rivals.check(self.verifier, self.map, estimate, self._retrieved_now(image)[: ch.pool],
                                  scan, samples=fcfg.scan_check.samples, std_xy=fcfg.init_std_xy,
                                  std_theta=np.radians(fcfg.init_std_theta_deg), min_distance_m=ch.min_distance_m,
                                  margin=ch.margin, confirm=ch.confirm, rng=self.filter.rng,
@@ -244,6 +257,24 @@ class Localizer:
             return None
         self.filter.inject(won, np.ones(len(won)), n=ch.particles * len(won), share=ch.share)
         return np.column_stack([won, np.full(len(won), 1.0 / len(won))])
+
+    def _weigh_evidence(self, image, scan, estimate: np.ndarray, threshold: float) -> np.ndarray | None:
+        """Check the image's hypotheses against the estimate (`filter.evidence`, `pipeline.runtime.evidence`);
+        when one wins, the belief is replaced by one around it. Returns its (1, 4) x, y, theta, weight or None."""
+        fcfg = self.filter_config
+        ev = fcfg.evidence
+        won = self._evidence.check(self.verifier, self.map, estimate, self._retrieved_now(image), scan, pool=ev.pool,
+                                   samples=fcfg.scan_check.samples, std_xy=fcfg.init_std_xy,
+                                   std_theta=np.radians(fcfg.init_std_theta_deg), min_distance_m=ev.min_distance_m,
+                                   tolerance=ev.tolerance, min_fit=ev.min_fit, radius_m=ev.radius_m,
+                                   heading_rad=np.radians(ev.heading_deg), max_rank=ev.max_rank, threshold=threshold,
+                                   min_checks=ev.min_checks, rng=self._evidence_rng, rounds=fcfg.scan_check.rounds)
+        if won is None:
+            return None
+        self.filter.init_pose(won)
+        self.awaiting_sequence = False  # the evidence is the confirmation the sequence was waiting for
+        self._rivals.clear()
+        return np.r_[won, 1.0][None]
 
     def scan(self, ranges) -> object:
         from pipeline.runtime.sensor import Scan
@@ -259,6 +290,7 @@ class Localizer:
 
         if scan is not None and not isinstance(scan, Scan):
             scan = self.scan(scan)
+        self._ranked_for = None  # a new image: retrieval runs (at most) once in this update
         cands, source = None, None
         mode = self.relocalise_with
         use_sequence = mode != "image"
@@ -328,5 +360,21 @@ class Localizer:
                 if self._tracking_images % self.filter_config.challenge.every == 0:
                     cands = self._challenge(image, scan, res.pose)
                     source = "challenge" if cands is not None else None
+        ev = self.filter_config.evidence
+        if ev.every and res.updated and not sources_now == ["start"]:
+            self._evidence.follow(odometry, res.pose, tracking=res.state == FilterState.TRACKING,
+                                  jump_m=ev.min_distance_m)
+            # Lost: the estimate is no hypothesis, but the ones held are followed on (one may be the truth).
+            if res.state != FilterState.LOST and image is not None and scan is not None:
+                self._evidence_images += 1
+                if self._evidence_images % ev.every == 0:
+                    settled = ev.settled_updates is not None and self._evidence.age >= ev.settled_updates
+                    won = self._weigh_evidence(image, scan, res.pose,
+                                               ev.settled_threshold if settled else ev.threshold)
+                    if won is not None:
+                        cands, source = won, "evidence"
+                        est = self.filter.estimate
+                        return Estimate(est.pose.copy(), est.covariance.copy(), self.filter.state.value,
+                                        len(self.filter.particles), True, cands, source, res.best_likelihood)
         return Estimate(res.pose, res.covariance, res.state.value, res.particles, res.updated, cands, source,
                         res.best_likelihood)

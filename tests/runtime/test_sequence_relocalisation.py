@@ -239,3 +239,46 @@ def test_a_tracked_twin_is_challenged_by_the_image_and_the_truth_left_alone(micr
     for _ in range(fcfg.challenge.confirm + 1):
         assert loc._challenge("frame", scan, truth) is None
     assert len(loc._rivals.poses) == 0
+
+
+def test_image_evidence_replaces_a_tracked_twin_and_leaves_the_truth_alone(micro_sequence_bundle):
+    """filter.evidence: a far pose the image keeps ranking above the estimate, and that fits the scan,
+    collects log(1 + rank of the estimate) - log(1 + its rank) per check; at the threshold, after
+    min_checks, the belief is replaced by one around it (and the sequence stops waiting to confirm)."""
+    from pipeline.evaluation.replay import load_run
+    from pipeline.runtime.amcl import FilterState
+    from pipeline.runtime.localizer import Localizer
+
+    _, ing, _, bundle = micro_sequence_bundle
+    loc = Localizer.from_bundle(bundle)
+    ev = loc.filter_config.evidence
+    assert ev.every >= 1 and ev.max_rank is not None
+    run = load_run(sorted((ing / "runs").glob("query_*.parquet"))[0])
+    t = len(run) // 2
+    truth, scan = run.gt[t], loc.scan(run.ranges[t])
+    far = []  # five free poses 4 m from the truth and 3 m from each other: no view is near another's
+    for pose in loc.map.sample_free(4000, np.random.default_rng(3)):
+        if np.hypot(*(pose[:2] - truth[:2])) > 4.0 and all(np.hypot(*(pose[:2] - p[:2])) > 3.0 for p in far):
+            far.append(pose)
+    far = np.asarray(far[:5])
+    assert len(far) == 5
+    loc.retrieved = lambda image: np.vstack([truth + [0.2, -0.1, 0.1], far[1:]])
+    loc.filter.init_pose(far[0])
+    loc.awaiting_sequence = True
+    # far[0] has no view among the five retrieved: rank 5 (under max_rank), the truth's rank 0.
+    per_check = np.log(6.0)
+    need = max(ev.min_checks, int(np.ceil(ev.threshold / per_check)))
+    for k in range(1, need):
+        assert loc._weigh_evidence("frame", scan, far[0], ev.threshold) is None
+        assert loc._evidence.evidence.max() == pytest.approx(k * per_check)
+    got = loc._weigh_evidence("frame", scan, far[0], ev.threshold)
+    assert got is not None and got.shape == (1, 4) and np.hypot(*(got[0, :2] - truth[:2])) < 0.6
+    assert loc.filter.state == FilterState.TRACKING and not loc.awaiting_sequence
+    assert np.hypot(*(loc.filter.estimate.pose[:2] - truth[:2])) < 0.6
+
+    # The estimate right: retrieved poses that do not fit the scan are never followed.
+    loc.retrieved = lambda image: far[1:]
+    loc.filter.init_pose(truth)
+    for _ in range(need + 2):
+        assert loc._weigh_evidence("frame", scan, truth, ev.threshold) is None
+    assert len(loc._evidence.poses) == 0
