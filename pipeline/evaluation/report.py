@@ -134,7 +134,7 @@ def render_report(doc: dict) -> str:
         lines.append(f"| {METHODS[m]} | {v['kidnappings']} | {v['recovered']} | {v['within_15']} / {v['within_40']} | "
                      f"{_fmt(v['steps_median'], '', 0)} / {_fmt(v['steps_p90'], '', 0)} | "
                      f"{_fmt(v['final_error_median_m'], ' m', 3)} | {v['within_15_and_10cm']} "
-                     f"({100 * v['within_15_and_10cm_share']:.0f} %) |")
+                     f"({100 * v['within_15_and_10cm_share']:.1f} %) |")
     lines += ["", f"Retrieval: {doc['retrieval']['frames']} frames described and searched once each, "
               f"{doc['retrieval']['seconds_mean']:.3f} s a frame (ONNX detector + IPA Top-50 + RPA re-ranking).", "",
               "## Table 1: candidate poses, fine pose, ground truth", "",

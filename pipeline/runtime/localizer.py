@@ -15,7 +15,11 @@ Top-pool that fit the update's scan best (`pipeline.runtime.scancheck`; scored b
 default, `filter.scan_check.model`), at their best-fitting pose;
 while the filter tracks, `filter.challenge` (every 2nd update with an image) checks the image's Top-10
 against the scan beside the estimate, and a far pose that fits better at several tests in a row
-(`pipeline.runtime.scancheck.Rivals`) gets particles: a kidnapping the laser cannot see. With a bundle
+(`pipeline.runtime.scancheck.Rivals`) gets particles: a kidnapping the laser cannot see. Where the laser
+cannot tell a twin of the place from the truth at all, `filter.evidence` (every update with an image,
+tracking or relocalising; `pipeline.runtime.evidence`) keeps the image's evidence per far pose that
+fits the scan as well as the estimate, and replaces the belief by one around a pose the camera keeps
+preferring. With a bundle
 exported with a sequence model and `filter.relocalise_with` `auto` (the default: `both` with a sequence
 model, `image` without), `both` or `sequence`, every frame also goes into a ring buffer (`pipeline.runtime.sequence`);
 when the filter is declared lost the buffer keeps only the frames since the kidnap rule started counting,
