@@ -19,7 +19,7 @@ minutes), builds and measures the retrieval database (`build-index`, `evaluate-r
 run frames and trains the image-sequence LSTM on the mapping runs (`siteloc frame-features`,
 `train-sequence`; about 1 minute), exports the deployable bundle with it (`siteloc export
 --sequence`), localizes the site's query runs from the bundle alone, camera frames included, beside
-the paper's baselines, and writes the report (`siteloc evaluate`; about 2 minutes). 15-19.5 minutes in
+the paper's baselines, and writes the report (`siteloc evaluate`; about 2-2.5 minutes). 15-20 minutes in
 all on 2 cores (2026-12-02; the machine's speed varied that much). Then it
 ingests every real CARMEN laser log in ../shared/data/carmen (`siteloc ingest-log`) and the example
 capture directory of docs/example-site, and prints a summary.

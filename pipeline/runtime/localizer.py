@@ -52,7 +52,7 @@ class Estimate:
     n_particles: int
     updated: bool  # False when the filter held the update back (not enough travel)
     candidates: np.ndarray | None  # (K, 4) x, y, theta, weight when retrieval ran this step
-    source: str | None  # what seeded or injected: image, sequence, sequence+image, challenge, area_prior, ...
+    source: str | None  # what seeded or injected: image, sequence, sequence+image, challenge, evidence, area_prior, ...
     best_likelihood: float  # per-beam relative likelihood of the best particle, (0, 1]
 
 
