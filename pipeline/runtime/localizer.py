@@ -181,7 +181,8 @@ class Localizer:
         return self.database.db.poses[found.ranked]
 
     def _retrieved_now(self, image) -> np.ndarray:
-        """`retrieved(image)`, computed once per update however many steps of it ask."""
+        """`retrieved(image)`, computed once per update however many parts of it (proposals, challenge,
+        evidence) ask for it."""
         if self._ranked_for is not image:
             self._ranked, self._ranked_for = self.retrieved(image), image
         return self._ranked
