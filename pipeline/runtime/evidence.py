@@ -35,15 +35,14 @@ from pipeline.runtime.scancheck import check_candidates
 def rank_near(poses: np.ndarray, ranked: np.ndarray, *, radius_m: float, heading_rad: float) -> np.ndarray:
     """(N,) for each pose (N, 3+) the rank of the first of `ranked` (K, 3+; best first) within radius_m
     and heading_rad of it, or K when none is."""
+    from pipeline.retrieval.metrics import positives
+
     poses = np.asarray(poses, dtype=np.float64)
     ranked = np.asarray(ranked, dtype=np.float64)
     k = len(ranked)
     if k == 0:
         return np.zeros(len(poses), dtype=np.int64)
-    dx = poses[:, None, 0] - ranked[None, :, 0]
-    dy = poses[:, None, 1] - ranked[None, :, 1]
-    dh = np.abs((poses[:, None, 2] - ranked[None, :, 2] + np.pi) % (2 * np.pi) - np.pi)
-    near = (dx * dx + dy * dy <= radius_m * radius_m) & (dh <= heading_rad)
+    near = positives(poses, ranked, radius_m, np.degrees(heading_rad))  # retrieval's own "near"
     return np.where(near.any(axis=1), np.argmax(near, axis=1), k)
 
 

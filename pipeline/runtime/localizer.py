@@ -365,8 +365,9 @@ class Localizer:
                 if self._tracking_images % self.filter_config.challenge.every == 0:
                     cands = self._challenge(image, scan, res.pose)
                     source = "challenge" if cands is not None else None
+        pose, covariance, state, particles = res.pose, res.covariance, res.state, res.particles
         ev = self.filter_config.evidence
-        if ev.every and res.updated and not sources_now == ["start"]:
+        if ev.every and res.updated and sources_now != ["start"]:
             self._evidence.follow(odometry, res.pose, tracking=res.state == FilterState.TRACKING,
                                   jump_m=ev.min_distance_m)
             # Lost: the estimate is no hypothesis, but the ones held are followed on (one may be the truth).
@@ -376,10 +377,9 @@ class Localizer:
                     settled = ev.settled_updates is not None and self._evidence.age >= ev.settled_updates
                     won = self._weigh_evidence(image, scan, res.pose,
                                                ev.settled_threshold if settled else ev.threshold)
-                    if won is not None:
+                    if won is not None:  # the belief was replaced: report the new one
                         cands, source = won, "evidence"
                         est = self.filter.estimate
-                        return Estimate(est.pose.copy(), est.covariance.copy(), self.filter.state.value,
-                                        len(self.filter.particles), True, cands, source, res.best_likelihood)
-        return Estimate(res.pose, res.covariance, res.state.value, res.particles, res.updated, cands, source,
-                        res.best_likelihood)
+                        pose, covariance = est.pose.copy(), est.covariance.copy()
+                        state, particles = self.filter.state, len(self.filter.particles)
+        return Estimate(pose, covariance, state.value, particles, res.updated, cands, source, res.best_likelihood)
