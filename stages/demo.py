@@ -20,7 +20,7 @@ run frames and trains the image-sequence LSTM on the mapping runs (`siteloc fram
 `train-sequence`; about 1 minute), exports the deployable bundle with it (`siteloc export
 --sequence`), localizes the site's query runs from the bundle alone, camera frames included, beside
 the paper's baselines, and writes the report (`siteloc evaluate`; about 2-2.5 minutes). 15-20 minutes in
-all on 2 cores (2026-12-02; the machine's speed varied that much). Then it
+all on 2 Intel cores (2026-12-02; the machine's speed varied that much; 45 minutes on an AMD EPYC). Then it
 ingests every real CARMEN laser log in ../shared/data/carmen (`siteloc ingest-log`) and the example
 capture directory of docs/example-site, and prints a summary.
 

@@ -89,7 +89,9 @@ def test_frame_features_by_torch_match_the_onnx_ones(frames, tmp_path):
     ref = run_frame_features(cfg, inputs={"data": ing}, outputs={"out": tmp_path / "f"}, progress=False)
     a, b = (tables.read_table(d / "frames.parquet", "frames") for d in (out, ref))
     assert a.drop_columns(["descriptor"]).equals(b.drop_columns(["descriptor"]))
-    np.testing.assert_allclose(tables.descriptor_matrix(a), tables.descriptor_matrix(b), atol=1e-4)
+    # Logits up to about 20: 1.05e-4 apart at most on an AMD EPYC (AVX2), well within the 5e-3 the export
+    # refuses beyond (`onnx_export.export_frame_encoder`).
+    np.testing.assert_allclose(tables.descriptor_matrix(a), tables.descriptor_matrix(b), atol=1e-4, rtol=1e-5)
     assert json.loads((ref / "report.json").read_text())["engine"] == "torch"
 
 
