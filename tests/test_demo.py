@@ -61,20 +61,17 @@ def test_demo_runs_resumes_and_forces(tmp_path):
                    if name != "total")
 
 
-def test_demo_without_logs_warns_and_ingests_the_example(tmp_path):
-    result = runner.invoke(app, ["demo", "--data", str(tmp_path / "d"), "--carmen-dir", str(tmp_path / "none"),
-                                 "--config", "ci", "--models", str(tmp_path / "m"), "--bundles", str(tmp_path / "b"),
-                                 "--reports", str(tmp_path / "r")])  # never the repository's own folders
-    assert result.exit_code == 0, result.output
-    assert "no CARMEN logs" in result.output
-    assert (tmp_path / "d" / "example" / "ingested" / "report.json").is_file()
-
-
-def test_demo_does_not_reuse_a_site_made_from_another_preset(tmp_path):
+def test_demo_without_logs_warns_and_does_not_reuse_a_site_made_from_other_settings(tmp_path):
+    """No logs: a warning, and the example site is still ingested. Run again with another synth seed,
+    the site and everything made from it are redone, not reused (one test: each demo costs a minute)."""
     data = tmp_path / "d"
     args = ["demo", "--data", str(data), "--carmen-dir", str(tmp_path / "none"), "--config", "ci", "--models",
             str(tmp_path / "m"), "--bundles", str(tmp_path / "b"), "--reports", str(tmp_path / "r")]
-    assert runner.invoke(app, args).exit_code == 0
+    result = runner.invoke(app, args)  # never the repository's own folders
+    assert result.exit_code == 0, result.output
+    assert "no CARMEN logs" in result.output
+    assert (data / "example" / "ingested" / "report.json").is_file()
+    assert json.loads((data / "demo-summary.json").read_text())["synth tiny"]["report"]["seed"] != 4
     again = runner.invoke(app, [*args, "--set", "synth.seed=4"])
     assert again.exit_code == 0, again.output
     summary = json.loads((data / "demo-summary.json").read_text())
