@@ -77,3 +77,5 @@ def test_demo_without_logs_warns_and_does_not_reuse_a_site_made_from_other_setti
     summary = json.loads((data / "demo-summary.json").read_text())
     assert not summary["synth tiny"]["reused"] and not summary["ingest tiny"]["reused"]
     assert summary["synth tiny"]["report"]["seed"] == 4
+    redone = {name for name, step in summary.items() if name != "total" and not step["reused"]}
+    assert redone == set(summary) - {"total", "ingest example-site"}  # the example site reads nothing of it
