@@ -583,3 +583,19 @@ def write_effective_config(cfg: SitelocConfig, out_dir: Path, *, stage: str, inp
         "config": cfg.model_dump(mode="json"),
     }
     return write_text_atomic(Path(out_dir) / "config.yaml", yaml.safe_dump(doc, sort_keys=False))
+
+
+PARAMS_FILE = CONFIG_DIR / "params.yaml"
+PARAMS_HEADER = """\
+# The config `dvc repro` runs (every stage of dvc.yaml reads --config configs/params.yaml): the {preset}
+# preset with every default written out, so that DVC tracks each value a stage reads. Made by
+#   siteloc config show --config {preset} --out configs/params.yaml
+# Change a value here, or with `dvc exp run -S configs/params.yaml:detector.iterations=3000`, and
+# `dvc repro` reruns exactly the stages that read it (docs/pipeline.md).
+"""
+
+
+def resolved_params_text(cfg: SitelocConfig) -> str:
+    """The fully defaulted config as the YAML of DVC's params file, under a header saying how it was made."""
+    body = yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False)
+    return PARAMS_HEADER.format(preset=cfg.preset) + body

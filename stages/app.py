@@ -19,10 +19,11 @@ from stages import (
     synth,
     train_detector,
 )
-from stages.common import help_text
+from stages.common import Group, help_text
 
 app = typer.Typer(
     name="siteloc",
+    cls=Group,
     help=(
         "Indoor localization from a camera and a 2D laser.\n\n"
         "Offline steps turn a mapping team's captures and laser logs into a site database; the runtime filter "

@@ -7,9 +7,10 @@ import sys
 import traceback
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
+from typer.core import TyperGroup, TyperOption
 
 ConfigOpt = Annotated[
     str,
@@ -20,17 +21,46 @@ ConfigOpt = Annotated[
         rich_help_panel="Configuration",
     ),
 ]
-SetOpt = Annotated[
-    list[str] | None,
-    typer.Option(
-        "--set",
-        "-s",
-        help="Override one config key, e.g. --set ingest.split.seed=3 (repeatable).",
-        rich_help_panel="Configuration",
-    ),
-]
+
+
+def set_opt(example: str) -> Any:
+    """The --set option; `example` (KEY=VALUE) should name a key of the config section the command reads."""
+    return Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set",
+            "-s",
+            help=f"Override one config key, e.g. --set {example} (repeatable).",
+            rich_help_panel="Configuration",
+        ),
+    ]
+
+
+SetOpt = set_opt("ingest.split.seed=3")
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Show full tracebacks on errors.")]
 ForceOpt = Annotated[bool, typer.Option("--force", "-f", help="Replace an existing output (atomically).")]
+
+
+def _plain_flags(command, ctx) -> None:
+    """Give the on/off flags of `command` and its subcommands (--help too) an empty metavar.
+
+    Typer's rich help prints every option's type after it, `<bool>` for a flag, as if it took a value.
+    """
+    for param in command.get_params(ctx):
+        if isinstance(param, TyperOption) and param.is_flag and param.metavar is None:
+            param.metavar = ""
+    for name, sub in getattr(command, "commands", {}).items():
+        _plain_flags(sub, sub.context_class(sub, parent=ctx, info_name=name, **sub.context_settings))
+
+
+class Group(TyperGroup):
+    """The root command group: every command's help shows its flags without a value placeholder."""
+
+    def get_params(self, ctx):
+        if not getattr(self, "_flags_plain", False):
+            self._flags_plain = True
+            _plain_flags(self, ctx)
+        return super().get_params(ctx)
 
 
 def err(message: str) -> None:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Annotated
+
 import typer
 
 from stages.common import ConfigOpt, SetOpt, VerboseOpt, cli_errors, load
@@ -10,13 +13,29 @@ app = typer.Typer(help="Show or check configuration presets (configs/*.yaml).", 
 
 
 @app.command("show")
-def show(config: ConfigOpt = "demo", set_: SetOpt = None, verbose: VerboseOpt = False) -> None:
-    """Print the effective config (preset + overrides + defaults) as YAML."""
+def show(
+    config: ConfigOpt = "demo",
+    set_: SetOpt = None,
+    out: Annotated[
+        Path | None,
+        typer.Option("--out", "-o", help="Write it to this file (atomically) instead of printing it, with a header "
+                     "saying how it was made: `--out configs/params.yaml` sets the config `dvc repro` runs."),
+    ] = None,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Print the effective config (preset + overrides + defaults) as YAML, or write it with --out."""
     import yaml
 
     with cli_errors(verbose):
+        from pipeline.config import resolved_params_text
+        from pipeline.io.atomic import write_text_atomic
+
         cfg = load(config, set_)
-        typer.echo(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False), nl=False)
+        if out is None:
+            typer.echo(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False), nl=False)
+            return
+        write_text_atomic(out, resolved_params_text(cfg))
+        typer.echo(f"wrote {out}: preset '{cfg.preset}' with every default")
 
 
 @app.command("check")

@@ -2,69 +2,67 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, load
+from stages.common import VerboseOpt, cli_errors, load
 
-HELP = """Run the main job end to end on data that ships with the project.
+HELP = """Run the main job end to end: the DVC pipeline of dvc.yaml, stage by stage, with a summary.
 
 This renders the reference site of the config (`synth.site`: office for the demo preset, a micro
-site for ci; see `siteloc synth`; about 5.5 minutes on 2 cores for the office site) and ingests it,
-fine-tunes the detector on it and scores it on the held-out stops (`siteloc train-detector`,
-`evaluate-detector`; about 7.5 minutes), extracts IPA / RPA descriptors (`siteloc extract`; about 2
-minutes), builds and measures the retrieval database (`build-index`, `evaluate-retrieval`), encodes the
-run frames and trains the image-sequence LSTM on the mapping runs (`siteloc frame-features`,
-`train-sequence`; about 1 minute), exports the deployable bundle with it (`siteloc export
---sequence`), localizes the site's query runs from the bundle alone, camera frames included, beside
-the paper's baselines, and writes the report (`siteloc evaluate`; about 2-2.5 minutes). 15-20 minutes in
-all on 2 Intel cores (2026-12-02; the machine's speed varied that much; 45 minutes on an AMD EPYC). Then it
-ingests every real CARMEN laser log in ../shared/data/carmen (`siteloc ingest-log`) and the example
-capture directory of docs/example-site, and prints a summary.
+site for ci; see `siteloc synth`) and ingests it, fine-tunes the detector on it and scores it on the
+held-out stops (`siteloc train-detector`, `evaluate-detector`), extracts IPA / RPA descriptors
+(`siteloc extract`), builds and measures the retrieval database (`build-index`, `evaluate-retrieval`),
+encodes the run frames and trains the image-sequence LSTM on the mapping runs (`siteloc frame-features`,
+`train-sequence`), builds seed 001's area prior (`siteloc prior features`, `prior build`), exports the
+deployable bundle with all of them (`siteloc export`), localizes the site's query runs from the bundle
+alone, camera frames included, beside the paper's baselines (`siteloc evaluate`, `prior evaluate`), and
+ingests every real CARMEN laser log of ../shared/data/carmen (`siteloc ingest-log`) and the example
+capture directory of docs/example-site. docs/results.md says how long it takes.
 
-Finished steps are reused, so an interrupted demo resumes; --force redoes everything.
-Outputs: DATA/reference/{site,ingested,descriptors,index,retrieval-eval,frames}/, MODELS/detector/,
-MODELS/detector-eval/, MODELS/sequence/, BUNDLES/<site>-<version>/ (+ .tar.gz), REPORTS/<site>/report.md,
-DATA/carmen/<log>/, DATA/example/ingested/, DATA/demo-summary.json.
+Every stage runs through DVC (`dvc repro STAGE`), so a stage whose inputs, code and parameters are
+unchanged is reused, an interrupted demo resumes, and dvc.lock matches the outputs afterwards: `make
+repro` then finds nothing to do. The config is configs/params.yaml; --config / --set first rewrite it
+(fully defaulted), and DVC reruns exactly the stages whose parameters changed. --force reruns every stage.
+Outputs: data/reference/{site,ingested,descriptors,index,frames,multilayer}/, models/{detector,
+detector-eval,sequence,prior}/, bundles/<site>-<version>/ (+ .tar.gz), reports/{retrieval,<site>,
+<site>-prior}/, data/carmen/<log>/, data/example/ingested/, data/demo-summary.json.
 """
 
 
 def demo(
-    data: Annotated[Path, typer.Option("--data", "-d", help="Where the outputs go.")] = Path("data"),
-    carmen_dir: Annotated[
-        Path | None,
-        typer.Option(
-            "--carmen-dir", help="Folder of CARMEN logs \\[default: ../shared/data/carmen or $SITELOC_CARMEN_DIR]."
-        ),
-    ] = None,
-    models: Annotated[Path, typer.Option("--models", "-m", help="Where trained models go.")] = Path("models"),
-    bundles: Annotated[Path, typer.Option("--bundles", help="Where the deployable bundle goes.")] = Path("bundles"),
-    reports: Annotated[Path, typer.Option("--reports", help="Where the localization report goes.")] = Path("reports"),
-    config: ConfigOpt = "demo",
-    set_: SetOpt = None,
-    force: ForceOpt = False,
+    config: Annotated[str | None, typer.Option(
+        "--config", "-c", help="Preset name in configs/ (demo, ci, paper) or a YAML path: written, fully "
+        "defaulted, to configs/params.yaml before the run \\[default: configs/params.yaml as it is].",
+        rich_help_panel="Configuration")] = None,
+    set_: Annotated[list[str] | None, typer.Option(
+        "--set", "-s", help="Override one config key in configs/params.yaml first, e.g. --set "
+        "detector.iterations=3000 (repeatable).", rich_help_panel="Configuration")] = None,
+    force: Annotated[bool, typer.Option("--force", "-f", help="Rerun every stage (dvc repro --force).")] = False,
     verbose: VerboseOpt = False,
 ) -> None:
     with cli_errors(verbose):
         from rich.console import Console
         from rich.table import Table
 
-        from pipeline.demo import DEFAULT_CARMEN_DIR, run_demo
+        from pipeline.demo import PARAMS, project_root, run_demo, write_params
 
-        cfg = load(config, set_)
-        carmen = carmen_dir or DEFAULT_CARMEN_DIR
-        if not carmen.is_dir():
-            typer.secho(
-                f"warning: no CARMEN logs at {carmen}; only the example site is ingested", fg="yellow", err=True
-            )
-        steps = run_demo(cfg, inputs={"carmen_dir": carmen},
-                         outputs={"data": data, "models": models, "bundles": bundles, "reports": reports}, force=force)
+        if config is not None or set_:
+            root = project_root()
+            cfg = load(config or str(root / PARAMS), set_)
+            if write_params(cfg, root):
+                typer.echo(f"{PARAMS}: now preset '{cfg.preset}'" + (f" with {' '.join(set_)}" if set_ else ""))
 
-        table = Table(title="siteloc demo", caption=f"outputs under {data}/ and {models}/ (summary: "
-                                                   "data/demo-summary.json)")
-        for col in ("step", "input", "result", "status", "time"):
+        def skipped(stage: str, missing: list[str]) -> None:
+            typer.secho(f"warning: {stage} skipped, its input is missing: {', '.join(missing)}", fg="yellow",
+                        err=True)
+
+        steps = run_demo(force=force, on_skip=skipped)
+
+        table = Table(title="siteloc demo", caption="outputs under data/, models/, bundles/, reports/ (summary: "
+                                                   "data/demo-summary.json; dvc.lock records them)")
+        for col in ("stage", "input", "result", "status", "time"):
             table.add_column(col)
         for s in steps:
             table.add_row(s.name.removesuffix("-corrected"), *_describe(s.report), "reused" if s.reused else "done",
@@ -82,6 +80,14 @@ def _describe(r: dict) -> tuple[str, str]:
     """(input, result) of one step's report, for the summary table."""
     import numpy as np
 
+    if "table_one" in r:  # prior evaluate
+        best = max(r["table_one"], key=lambda row: row.get("area_accuracy") or 0)
+        return (f"{len(r['table_one'])} compressions", f"area accuracy {best['area_accuracy']:.3f} "
+                f"({best['compression']}), room {best['room_accuracy']:.3f}")
+    if "compression" in r and "classes" in r:  # prior build
+        return f"{r['images']} images", f"{r['classes']} (room, area) classes, {r['compression'].get('method', '')}"
+    if "encoder" in r and "dims" in r:  # prior features
+        return f"{r['images']} images", "layers " + ", ".join(f"{k} {v}-d" for k, v in r["dims"].items())
     if "objects_per_class" in r:
         return f"{r['capture_images']} views, {len(r['runs'])} runs", _map_size(r["map"])
     if "scans" in r:
@@ -125,7 +131,9 @@ def _describe(r: dict) -> tuple[str, str]:
     if "map_50" in r:
         fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
         return (f"{r['images']} held-out images", f"mAP@0.5 {fmt(r['map_50'])}, mAP@[.5:.95] {fmt(r['map_50_95'])}")
-    return f"{r['images']} images", _map_size(r["map"])
+    if "map" in r:
+        return f"{r['images']} images", _map_size(r["map"])
+    return "", ""
 
 
 def _duration(seconds: float) -> str:

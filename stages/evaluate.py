@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, echo_path, load
+from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, load, set_opt
 
 HELP = """Reproduce seed 000's localization experiments on a site and write reports/<site>/report.md.
 
@@ -48,7 +48,7 @@ def evaluate(
     trials: Annotated[int | None, typer.Option("--trials", min=1, help="Replays per run and method "
                                                "\\[default: evaluate.trials].")] = None,
     config: ConfigOpt = "demo",
-    set_: SetOpt = None,
+    set_: set_opt("evaluate.converge_threshold_m=1.0") = None,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:

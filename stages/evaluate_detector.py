@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, echo_path, load
+from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, load, set_opt
 
 HELP = """Score a trained detector on held-out stops: COCO mAP@0.5 and mAP@[.5:.95], overall and per class.
 
@@ -29,7 +29,7 @@ def evaluate_detector(
     data: Annotated[Path, typer.Argument(help="The ingested site (output of siteloc ingest).", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)],
     config: ConfigOpt = "demo",
-    set_: SetOpt = None,
+    set_: set_opt("detector.plot_score=0.7") = None,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, echo_path, load
+from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, load, set_opt
 
 HELP = """Write the deployable bundle: bundles/<site>-<version>/ and its .tar.gz.
 
@@ -48,7 +48,7 @@ def export(
     version: Annotated[str | None,
                        typer.Option("--version", help="Bundle version \\[default: export.version].")] = None,
     config: ConfigOpt = "demo",
-    set_: SetOpt = None,
+    set_: set_opt("export.parity_images=8") = None,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:

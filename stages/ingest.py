@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, load
+from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, load, set_opt
 
 HELP = """Validate a site capture directory and write the normalised site database.
 
@@ -33,7 +33,7 @@ def ingest(
         Path, typer.Option("--out", "-o", help="Output directory for the ingested site.", show_default=False)
     ],
     config: ConfigOpt = "demo",
-    set_: SetOpt = None,
+    set_: set_opt("ingest.split.seed=3") = None,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:

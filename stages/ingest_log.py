@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, echo_path, load
+from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, load, set_opt
 
 HELP = """Ingest a CARMEN 2D-laser log with a corrected trajectory: build its occupancy map and a runs table.
 
@@ -57,7 +57,7 @@ def ingest_log(
     log: LogArg,
     out: OutOpt,
     config: ConfigOpt = "demo",
-    set_: SetOpt = None,
+    set_: set_opt("ingest_log.mapping.resolution=0.1") = None,
     skip_bad_lines: SkipOpt = False,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import sys
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, echo_path, load
+from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, load, set_opt
 
 HELP = """Replay recorded runs through the runtime filter (adaptive MCL on the laser map) and measure it.
 
@@ -41,13 +42,22 @@ Example: siteloc localize data/carmen/intel-corrected --out data/localize/intel 
 """
 
 
+class Init(StrEnum):
+    """How the filter starts (pipeline.localize.INITS)."""
+
+    uniform = "uniform"
+    pose = "pose"
+    candidates = "candidates"
+    retrieval = "retrieval"
+
+
 def localize(
     data: Annotated[Path, typer.Argument(help="Dataset directory (map.yaml + runs/).", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)],
     run: Annotated[
         list[str] | None, typer.Option("--run", "-r", help="Replay only this run (repeatable) \\[default: all].")
     ] = None,
-    init: Annotated[str, typer.Option("--init", help="uniform, pose, candidates or retrieval.")] = "uniform",
+    init: Annotated[Init, typer.Option("--init", help="How the filter starts (see above).")] = Init.uniform,
     trials: Annotated[int, typer.Option("--trials", min=1, help="Replays per run, with seeds seed..seed+N-1.")] = 1,
     kidnap_at: Annotated[
         list[int] | None, typer.Option("--kidnap-at", help="Teleport the robot at this step (repeatable).")
@@ -57,20 +67,18 @@ def localize(
         Path | None, typer.Option("--bundle", "-b", help="A bundle from `siteloc export` (implies --init retrieval).")
     ] = None,
     config: ConfigOpt = "demo",
-    set_: SetOpt = None,
+    set_: set_opt("filter.max_particles=10000") = None,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     with cli_errors(verbose):
         import json
 
-        from pipeline.errors import ConfigError
-        from pipeline.localize import INITS, run_localize
+        from pipeline.localize import run_localize
 
-        if bundle is not None and init == "uniform":
-            init = "retrieval"
-        if init not in INITS:
-            raise ConfigError(f"--init must be one of {', '.join(INITS)}; got '{init}'")
+        if bundle is not None and init == Init.uniform:
+            init = Init.retrieval
+        init = Init(init).value  # the pipeline takes a plain string
         cfg = load(config, set_)
         result = run_localize(cfg, inputs={"data": data}, outputs={"out": out}, runs=run, init=init, trials=trials,
                               kidnap_at=kidnap_at, kidnap_min_jump_m=kidnap_min_jump, bundle=bundle, force=force,

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, echo_path, help_text, load
+from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, help_text, load, set_opt
 
 APP_HELP = """Room-and-area localization from pretrained multi-layer CNN features (seed 001).
 
@@ -75,7 +75,8 @@ OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Output directory.", s
 def features(
     data: Annotated[Path, typer.Argument(help="An ingested site.", show_default=False)],
     out: OutOpt,
-    config: ConfigOpt = "demo", set_: SetOpt = None, force: ForceOpt = False, verbose: VerboseOpt = False,
+    config: ConfigOpt = "demo", set_: set_opt("prior.batch=32") = None,
+    force: ForceOpt = False, verbose: VerboseOpt = False,
 ) -> None:
     with cli_errors(verbose):
         import json
@@ -95,7 +96,8 @@ def build(
                                                  show_default=False)],
     out: OutOpt,
     all_images: Annotated[bool, typer.Option("--all", help="Every image, not only the train split.")] = False,
-    config: ConfigOpt = "demo", set_: SetOpt = None, force: ForceOpt = False, verbose: VerboseOpt = False,
+    config: ConfigOpt = "demo", set_: set_opt("prior.compression=ipca") = None,
+    force: ForceOpt = False, verbose: VerboseOpt = False,
 ) -> None:
     with cli_errors(verbose):
         import json
@@ -117,7 +119,8 @@ def append(
                                                  show_default=False)],
     out: OutOpt,
     room: Annotated[list[str] | None, typer.Option("--room", help="Only these rooms (repeatable).")] = None,
-    config: ConfigOpt = "demo", set_: SetOpt = None, force: ForceOpt = False, verbose: VerboseOpt = False,
+    config: ConfigOpt = "demo", set_: set_opt("prior.seed=1") = None,
+    force: ForceOpt = False, verbose: VerboseOpt = False,
 ) -> None:
     with cli_errors(verbose):
         import json
@@ -138,7 +141,7 @@ def query(
     images: Annotated[list[Path], typer.Argument(help="Camera images.", show_default=False)],
     top: Annotated[int, typer.Option("--top", min=1, help="Classes to print per image.")] = 3,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
-    config: ConfigOpt = "demo", set_: SetOpt = None, verbose: VerboseOpt = False,
+    config: ConfigOpt = "demo", set_: set_opt("prior.weights=models/lite0.pt") = None, verbose: VerboseOpt = False,
 ) -> None:
     with cli_errors(verbose):
         import json
@@ -162,7 +165,8 @@ def evaluate(
     changed: Annotated[Path | None, typer.Option("--changed", help="Features of the changed site.")] = None,
     bundle: Annotated[Path | None, typer.Option("--bundle", help="A bundle of the site (seeding).")] = None,
     data: Annotated[Path | None, typer.Option("--data", help="The ingested site with query runs.")] = None,
-    config: ConfigOpt = "demo", set_: SetOpt = None, force: ForceOpt = False, verbose: VerboseOpt = False,
+    config: ConfigOpt = "demo", set_: set_opt("prior.measure=spearman") = None,
+    force: ForceOpt = False, verbose: VerboseOpt = False,
 ) -> None:
     with cli_errors(verbose):
         if (bundle is None) != (data is None):

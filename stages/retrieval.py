@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, echo_path, load
+from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, load, set_opt
 
 OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)]
 
@@ -66,7 +66,7 @@ def extract(
     data: Annotated[Path, typer.Argument(help="The ingested site.", show_default=False)],
     out: OutOpt,
     config: ConfigOpt = "demo",
-    set_: SetOpt = None,
+    set_: set_opt("retrieval.chunk=32") = None,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
@@ -87,7 +87,7 @@ def build_index(
     descriptors: Annotated[Path, typer.Argument(help="Output of siteloc extract.", show_default=False)],
     out: OutOpt,
     config: ConfigOpt = "demo",
-    set_: SetOpt = None,
+    set_: set_opt("retrieval.whitening=learned") = None,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
@@ -111,7 +111,7 @@ def query(
                                         show_default=False)],
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Write the candidates as JSON here.")] = None,
     config: ConfigOpt = "demo",
-    set_: SetOpt = None,
+    set_: set_opt("retrieval.top_n=100") = None,
     verbose: VerboseOpt = False,
 ) -> None:
     with cli_errors(verbose):
@@ -158,7 +158,7 @@ def evaluate_retrieval(
     queries_data: Annotated[Path | None, typer.Option(
         "--queries-data", help="The ingested site of --queries (for its pictures).")] = None,
     config: ConfigOpt = "demo",
-    set_: SetOpt = None,
+    set_: set_opt("retrieval.query_regions=20") = None,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:

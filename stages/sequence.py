@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, echo_path, load
+from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, load, set_opt
 
 FRAMES_HELP = """Compute the per-frame input of the sequence LSTM for every camera frame of a site's runs.
 
@@ -41,7 +41,7 @@ def frame_features(
     data: Annotated[Path, typer.Argument(help="An ingested site with camera runs.", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)],
     config: ConfigOpt = "demo",
-    set_: SetOpt = None,
+    set_: set_opt("sequence.batch=32") = None,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
@@ -61,7 +61,7 @@ def train_sequence(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)],
     data: Annotated[Path | None, typer.Option("--data", help="The ingested site (kidnappings of its runs).")] = None,
     config: ConfigOpt = "demo",
-    set_: SetOpt = None,
+    set_: set_opt("sequence.epochs=50") = None,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, SetOpt, VerboseOpt, cli_errors, echo_path, load
+from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, load, set_opt
 
 HELP = """Fine-tune the 9-class Faster R-CNN (8 object classes + background) on an ingested site.
 
@@ -30,7 +30,7 @@ def train_detector(
     data: Annotated[Path, typer.Argument(help="An ingested site (output of siteloc ingest).", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)],
     config: ConfigOpt = "demo",
-    set_: SetOpt = None,
+    set_: set_opt("detector.iterations=3000") = None,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:

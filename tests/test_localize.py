@@ -45,7 +45,7 @@ def test_tracking_replay_writes_estimates_metrics_and_plots(dataset, tmp_path):
 
 def test_bad_options_fail_clearly(dataset, tmp_path):
     res = runner.invoke(app, ["localize", str(dataset), "--out", str(tmp_path / "a"), "--init", "magic"])
-    assert res.exit_code == 1 and "uniform, pose, candidates" in res.output
+    assert res.exit_code == 2 and all(f"'{c}'" in res.output for c in ("magic", "uniform", "pose", "candidates"))
     res = runner.invoke(app, ["localize", str(dataset), "--out", str(tmp_path / "b"), "--run", "nope"])
     assert res.exit_code == 1 and "room-corrected" in res.output
     res = runner.invoke(app, ["localize", str(dataset), "--out", str(tmp_path / "c"), "--kidnap-at", "20",

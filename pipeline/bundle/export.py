@@ -23,6 +23,7 @@ from pathlib import Path
 import yaml
 
 from pipeline import __version__
+from pipeline.bundle.provenance import provenance
 from pipeline.config import SitelocConfig
 from pipeline.errors import InputError, Problem
 from pipeline.runtime.bundle import MANIFEST, SCHEMA_VERSION, sha256_of
@@ -220,10 +221,9 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
                     "prior": {"area_radius_m": cfg.prior.area_radius_m, "max_areas": cfg.prior.max_areas},
                     "laser": laser_settings(data), "camera": {"height": image_hw[0], "width": image_hw[1]}}
         write_text_atomic(tmp / "filter.yaml", yaml.safe_dump(settings, sort_keys=False))
-        lock = Path.cwd() / "dvc.lock"
         write_manifest(tmp, {
             "bundle_version": cfg.export.version, "site": site, "created": _created(), "code_version": code_version(),
-            "dvc_lock_sha256": sha256_of(lock) if lock.is_file() else None,
+            "provenance": provenance({k: Path(v) for k, v in inputs.items() if v is not None}),
             "database": {"images": db_report.get("images"), "regions": db_report.get("regions"),
                          "whitening": db_report.get("whitening")},
             "inputs": {k: str(v) for k, v in inputs.items()}, "config": cfg.model_dump(mode="json")})

@@ -5,7 +5,9 @@ on). Scores come from pycocotools' COCOeval (bbox, all areas, 100 detections per
 mAP@[.5:.95] overall and per class, per-class AP read from COCOeval's precision array (101-point
 interpolated precision, averaged over recall). Outputs: `metrics.json`, `detections.json` (COCO results
 format, original pixels, 1-based category ids as in the ingest), `predictions.png` (held-out views with
-ground truth dashed and detections above `plot_score` labelled) and `config.yaml`.
+ground truth dashed and detections above `plot_score` labelled), `config.yaml`, and for DVC
+(`pipeline.io.tracked`) `headline.json` (map_50, map_50_95) and `plots/ap_per_class.csv`
+(`class,ap_50,ap_50_95`, one row per detector class, empty cells for a class without ground truth).
 """
 
 from __future__ import annotations
@@ -75,6 +77,7 @@ def run_evaluate_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], output
     from pipeline.detection.inference import detector_features, load_detector, load_image
     from pipeline.errors import OutputExistsError
     from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.tracked import write_headline, write_plot_table
     from pipeline.progress import progress_bar
 
     d = cfg.detector
@@ -115,6 +118,9 @@ def run_evaluate_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], output
                "box_nms_thresh": d.box_nms_thresh}
     with atomic_dir(out, force=force) as tmp:
         write_text_atomic(tmp / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+        write_headline(tmp, {"map_50": scores["map_50"], "map_50_95": scores["map_50_95"]})
+        write_plot_table(tmp, "ap_per_class", ["class", "ap_50", "ap_50_95"],
+                         [(name, v["ap_50"], v["ap_50_95"]) for name, v in scores["per_class"].items()])
         write_text_atomic(tmp / "detections.json", json.dumps(detections) + "\n")
         predictions_figure(tmp / "predictions.png", samples, found, classes, d.plot_score, d.plot_images,
                            title=f"{metrics['backbone']} on held-out stops: mAP@0.5 {_fmt(scores['map_50'])}, "

@@ -9,7 +9,9 @@ iterations a checkpoint of tensors and primitives only (model, optimizer, iterat
 is written atomically to `<out>.partial/checkpoint.pt`; a rerun resumes from it (`torch.load` with
 weights_only=True). A non-finite loss stops training with an error naming the iteration. The finished
 output directory holds `weights.safetensors`, `config.json` (builder arguments, classes, weights source,
-iterations) and `metrics.json` (loss curve, validation loss, timings).
+iterations), `metrics.json` (loss curve, validation loss, timings), `headline.json` (loss_first,
+loss_last_50_mean, val_loss) and `plots/loss.csv` (`iteration,loss`: the training loss at each 0-based
+iteration, as `loss_history`), which DVC compares across runs (`pipeline.io.tracked`).
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     from pipeline.detection.inference import pick_device
     from pipeline.io.atomic import atomic_dir, write_text_atomic
     from pipeline.io.checkpoint import resume_state, save_checkpoint
+    from pipeline.io.tracked import write_headline, write_plot_table
     from pipeline.progress import progress_bar
 
     d = cfg.detector
@@ -136,11 +139,14 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
             "max_side": d.max_side, "iterations": d.iterations, "frozen": built.frozen,
             "device": str(device), "mixed_precision": amp,
             "val_stops": sorted({s.stop_id for s in val})}, indent=2) + "\n")
-        write_text_atomic(tmp / "metrics.json", json.dumps({
+        metrics = {
             "train_images": len(train), "val_images": len(val), "loss_first": history[0], "loss_last": history[-1],
             "loss_last_50_mean": float(np.mean(history[-50:])), "val_loss": val_loss,
-            "iterations_per_s": round((d.iterations - start) / max(train_s, 1e-9), 3), "loss_history": history},
-            indent=2) + "\n")
+            "iterations_per_s": round((d.iterations - start) / max(train_s, 1e-9), 3), "loss_history": history}
+        write_text_atomic(tmp / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+        write_headline(tmp, {k: metrics[k] for k in ("loss_first", "loss_last_50_mean", "val_loss")})
+        # history[i] is the loss of loop iteration i (0-based, as `learning_rate(it)` and the error messages)
+        write_plot_table(tmp, "loss", ["iteration", "loss"], enumerate(history))
         write_effective_config(cfg, tmp, stage="train-detector", inputs=inputs)
     if ckpt_path.exists():
         ckpt_path.unlink()

@@ -3,7 +3,10 @@
 Inputs: a deployable bundle (`siteloc export`) and the ingested site whose query runs it is measured on.
 Outputs in `reports/<site>/`: report.md (Table 1, the summary beside the paper's figures, Figures
 8-12), metrics.json (every replay's metrics and each method's summary), estimates/<method>.parquet
-(per step, the `estimates` table of `siteloc localize`), fig8..fig12 PNGs, config.yaml.
+(per step, the `estimates` table of `siteloc localize`), fig8..fig12 PNGs, config.yaml, and for DVC
+(`pipeline.io.tracked`, see `write_tracked`) headline.json (per method: p90 global error, mean error
+once converged, kidnappings and recoveries), plots/error_cdf.csv (Figure 8's error CDF of every method)
+and plots/recovery_steps.csv (steps to recover from each kidnapping, per method).
 See `experiments` for the methods and how they share inputs and seeds.
 """
 
@@ -72,6 +75,53 @@ def kidnap_table(results: dict[str, list[Replay]], summary: dict[str, dict], tar
                   "final_error_median_m": round(float(np.median(fin)), 4) if fin else None,
                   "within_15_and_10cm": int(both), "within_15_and_10cm_share": round(both / len(steps), 4)}
     return out
+
+
+HEADLINE_KEYS = ("error_p90_global_m", "error_mean_converged_m", "recovered", "kidnaps", "recovered_within_15")
+
+
+def error_grid(top: float) -> np.ndarray:
+    """The error_m values of plots/error_cdf.csv: 0 to 5 m in 0.05 m steps, then 0.5 m steps to 20 m,
+    then 5 m steps, ending at the first value at or above `top` (the largest error)."""
+    cm = list(range(0, 501, 5))  # in centimetres: exact grid values, no float drift
+    while cm[-1] < top * 100:
+        cm.append(cm[-1] + (50 if cm[-1] < 2000 else 500))
+    return np.asarray(cm) / 100.0
+
+
+def error_cdf_table(results: dict[str, list[Replay]]) -> tuple[list[str], list[tuple]]:
+    """(columns, rows) of plots/error_cdf.csv: `error_m`, then per method the share of its global-
+    localization steps (start to first kidnapping, every replay: Figure 8's errors) with a position error
+    <= error_m. Non-finite errors count as steps but never as under; the grid reaches the largest finite
+    error, so the last row is each method's share of finite errors (1 when all are)."""
+    errs = {m: np.concatenate([r.global_errors for r in reps]) if reps else np.zeros(0) for m, reps in results.items()}
+    finite = {m: np.sort(e[np.isfinite(e)]) for m, e in errs.items()}
+    top = max((float(f[-1]) for f in finite.values() if len(f)), default=0.0)
+    grid = error_grid(top)
+    shares = {m: np.searchsorted(finite[m], grid, side="right") / len(errs[m]) if len(errs[m])
+              else [None] * len(grid) for m in results}
+    return ["error_m", *results], [(float(x), *(shares[m][i] for m in results)) for i, x in enumerate(grid)]
+
+
+def recovery_steps_table(replays: dict[str, list[dict]]) -> tuple[list[str], list[tuple]]:
+    """(columns, rows) of plots/recovery_steps.csv from metrics.json's `replays`: one row per kidnapping,
+    labelled "<run>@<step> trial <t>" in the replays' order, and per method the steps it took to recover,
+    None (an empty cell) where that replay never recovered or the method has no such replay."""
+    cells: dict[str, dict[str, int | None]] = {}
+    for m, reps in replays.items():
+        for r in reps:
+            for k, steps in zip(r["kidnaps"], r["recovery_steps"], strict=True):
+                cells.setdefault(f"{r['run']}@{k} trial {r['trial']}", {})[m] = steps
+    return ["kidnapping", *replays], [(label, *(c.get(m) for m in replays)) for label, c in cells.items()]
+
+
+def write_tracked(out: Path, doc: dict, results: dict[str, list[Replay]]) -> None:
+    """headline.json (per method of the summary: HEADLINE_KEYS), plots/error_cdf.csv, plots/recovery_steps.csv."""
+    from pipeline.io.tracked import write_headline, write_plot_table
+
+    write_headline(out, {m: {k: v[k] for k in HEADLINE_KEYS} for m, v in doc["summary"].items()})
+    write_plot_table(out, "error_cdf", *error_cdf_table(results))
+    write_plot_table(out, "recovery_steps", *recovery_steps_table(doc["replays"]))
 
 
 def _fmt(v, unit: str = "", digits: int = 2) -> str:
@@ -224,6 +274,7 @@ def run_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[s
         doc["seconds"] = time.perf_counter() - t0
         doc["machine"] = machine_summary()
         write_text_atomic(tmp / "metrics.json", json.dumps(doc, indent=2) + "\n")
+        write_tracked(tmp, doc, results)
         write_text_atomic(tmp / "report.md", render_report(doc))
         write_effective_config(cfg, tmp, stage="evaluate", inputs=inputs)
     return out

@@ -81,7 +81,9 @@ def figure10_error_vs_step(path: Path, results: dict[str, list[Replay]]) -> Path
     runs = [r.run for r in results["proposed"] if r.trial == 0]
     cols = min(2, len(runs))
     rows = int(np.ceil(len(runs) / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 3.2 * rows), squeeze=False, sharey=True)
+    # constrained layout makes room for each panel's title below the step axis of the panel above
+    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 3.2 * rows), squeeze=False, sharey=True,
+                             layout="constrained")
     for ax, name in zip(axes.ravel(), runs, strict=False):
         for m in ("mixture", "image_only", "proposed"):
             r = next(x for x in results[m] if x.run == name and x.trial == 0)
@@ -95,7 +97,8 @@ def figure10_error_vs_step(path: Path, results: dict[str, list[Replay]]) -> Path
         ax.grid(alpha=0.3)
     for ax in axes.ravel()[len(runs):]:
         ax.set_visible(False)
-    axes[0, 0].set_ylabel("position error (m)")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("position error (m)")
     axes[0, 0].legend(fontsize=7, loc="upper right")
     fig.suptitle("Figure 10: error per step, mixture MCL vs image-only vs proposed")
     return save_figure(fig, path)

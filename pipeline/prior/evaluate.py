@@ -12,6 +12,11 @@ with `changed` every image of the site after `synth --change` against the same d
 - With a bundle and the ingested site: global localization seeded three ways on the same query runs
   (the steps before their first kidnapping): particles over the first image's most probable areas (the
   prior), around its Top-4 retrieved poses (seed 000), or uniform; steps to converge.
+
+Outputs: metrics.json, report.md, the PNGs, config.yaml, and for DVC (`pipeline.io.tracked`, see
+`write_tracked`) headline.json (Table I's best and configured accuracies; with the seeding comparison
+each seeding's convergence and the prior's hit rates) and, with the seeding comparison,
+plots/seeding.csv (`steps,area_prior,candidates,uniform`: the share of replays converged by then).
 """
 
 from __future__ import annotations
@@ -146,6 +151,48 @@ def append_study(cfg: SitelocConfig, meta_db, raw_db, meta_q, raw_q, encoder, *,
                                                                                       strict=True) if o])), 4)}
 
 
+def headline(metrics: dict) -> dict:
+    """The figures compared across runs: Table I's best top-1 accuracies (over the compressions) and the
+    configured compression's, on the changed site too when measured; with the seeding comparison, each
+    seeding's converged / within-15 counts and median steps, and how often the prior's areas held the truth."""
+    rows = metrics["table_one"]
+    conf = next((r for r in rows if r["compression"] == metrics["settings"]["compression"]), {})
+    t1 = {"area_accuracy_best": max(r["area_accuracy"] for r in rows),
+          "room_accuracy_best": max(r["room_accuracy"] for r in rows),
+          "area_accuracy": conf.get("area_accuracy"), "room_accuracy": conf.get("room_accuracy")}
+    if rows and all("changed_area_accuracy" in r for r in rows):
+        t1["changed_area_accuracy_best"] = max(r["changed_area_accuracy"] for r in rows)
+        t1["changed_room_accuracy_best"] = max(r["changed_room_accuracy"] for r in rows)
+    out = {"table_one": t1}
+    if "seeding" in metrics:
+        sd = metrics["seeding"]
+        out["seeding"] = {k: sd[k] for k in ("prior_hit_rate", "prior_top1_rate", "retrieval_top1_rate")}
+        for name, v in sd["summary"].items():
+            out[f"seeding_{name}"] = {k: v[k] for k in ("replays", "converged", "within_15", "converged_step_median")}
+    return out
+
+
+def seeding_table(seeding: dict) -> tuple[list[str], list[tuple]]:
+    """(columns, rows) of plots/seeding.csv: per step s of a segment (0 to the longest segment's last), the
+    share of each seeding's replays converged at step <= s (seeding.png's curves; never-converged replays
+    count in the denominator)."""
+    reps = seeding["replays"]
+    longest = max((r["steps"] for rs in reps.values() for r in rs), default=0)
+    conv = {m: np.sort([r["converged_step"] for r in rs if r["converged_step"] is not None]) for m, rs in reps.items()}
+    steps = np.arange(longest)
+    share = {m: np.searchsorted(conv[m], steps, side="right") / len(rs) if rs else [None] * len(steps)
+             for m, rs in reps.items()}
+    return ["steps", *reps], [(int(t), *(share[m][i] for m in reps)) for i, t in enumerate(steps)]
+
+
+def write_tracked(out: Path, metrics: dict) -> None:
+    from pipeline.io.tracked import write_headline, write_plot_table
+
+    write_headline(out, headline(metrics))
+    if "seeding" in metrics:
+        write_plot_table(out, "seeding", *seeding_table(metrics["seeding"]))
+
+
 def run_prior_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
                        force: bool = False, progress: bool = True) -> Path:
     from pipeline.errors import OutputExistsError
@@ -197,6 +244,7 @@ def run_prior_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
                                              progress=progress)
     with atomic_dir(out, force=force) as tmp:
         write_text_atomic(tmp / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+        write_tracked(tmp, metrics)
         figures = write_figures(tmp, metrics)
         if rep.get("data") and write_examples(tmp / "examples.png", prior, meta_q, prior.probabilities(raw_q),
                                               Path(rep["data"])):

@@ -6,7 +6,9 @@ PCA, learned from geo-tag pairs) the transforms are fitted on the database only,
 answered with the IPA Top-N and with its RPA re-ranking. Measures (see `metrics`): mAP@4 (the paper's
 figure) and recall@{1, 4, 10, 50}, with positives within {1, 2, 5} m and {30, 60} degrees.
 Outputs: metrics.json (every variant and threshold), report.md (the table), recall.png (recall@N curves
-at 2 m / 30 deg), examples.png (queries and their Top-4, green when a positive), config.yaml.
+at 2 m / 30 deg), examples.png (queries and their Top-4, green when a positive), config.yaml, and for
+DVC (`pipeline.io.tracked`, see `write_tracked`) headline.json (mAP@4 and recall@1 of IPA and IPA + RPA
+with the configured whitening at 2 m / 30 deg) and plots/recall_at_n.csv (`n,ipa,ipa_rpa`).
 """
 
 from __future__ import annotations
@@ -189,15 +191,30 @@ def run_evaluate_retrieval(cfg: SitelocConfig, *, inputs: dict[str, Path], outpu
                "queries_from": str(inputs.get("query_descriptors") or inputs["descriptors"]),
                "query_regions": r.query_regions, "variants": results, "skipped": skipped,
                "paper_map_at_4": 0.742}
-    best = f"ipa+rpa / {r.whitening}" if r.whitening not in skipped else "ipa+rpa / pca"
+    whitening = r.whitening if r.whitening not in skipped else "pca"
+    best = f"ipa+rpa / {whitening}"
     with atomic_dir(out, force=force) as tmp:
         write_text_atomic(tmp / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+        write_tracked(tmp, metrics, whitening)
         write_text_atomic(tmp / "report.md", report_table(metrics))
         recall_figure(tmp / "recall.png", rankings, qx.poses[queries], ex.poses[db], MAIN)
         examples_figure(tmp / "examples.png", (Path(inputs["data"]), ex, db), (query_root, qx, queries),
                         rankings[best], MAIN, title=best)
         write_effective_config(cfg, tmp, stage="evaluate-retrieval", inputs=inputs)
     return out
+
+
+def write_tracked(out: Path, metrics: dict, whitening: str) -> None:
+    """headline.json and plots/recall_at_n.csv of `whitening`'s IPA and IPA + RPA variants at 2 m / 30 deg:
+    {"ipa": {"map_at_4", "recall_at_1"}, "ipa_rpa": {...}}, and one row per N of metrics.json's recall@N."""
+    from pipeline.io.tracked import write_headline, write_plot_table
+
+    key = f"{MAIN[0]:g}m_{MAIN[1]:g}deg"
+    main = {stage.replace("+", "_"): metrics["variants"][f"{stage} / {whitening}"][key] for stage in ("ipa", "ipa+rpa")}
+    write_headline(out, {s: {"map_at_4": m["map_at_4"], "recall_at_1": m["recall_at_1"]} for s, m in main.items()})
+    ns = sorted(int(k.removeprefix("recall_at_")) for k in main["ipa"] if k.startswith("recall_at_"))
+    write_plot_table(out, "recall_at_n", ["n", "ipa", "ipa_rpa"],
+                     [(n, main["ipa"][f"recall_at_{n}"], main["ipa_rpa"][f"recall_at_{n}"]) for n in ns])
 
 
 def report_table(metrics: dict) -> str:

@@ -13,7 +13,9 @@ within 2 m of the query's last frame, for the sequence descriptor at lengths 1..
 frames (whitened logits), with the time per query.
 
 Outputs: weights.safetensors, config.json (builder arguments, places), database.parquet (kind
-`sequences`), whitening.npz, metrics.json, config.yaml.
+`sequences`), whitening.npz, metrics.json, config.yaml, and for DVC (`pipeline.io.tracked`)
+headline.json (recall@1 within 2 m at the configured `sequence.length` and for single frames) and
+plots/loss.csv (`epoch,loss`: the mean training loss of each epoch, 1-based).
 """
 
 from __future__ import annotations
@@ -182,11 +184,29 @@ def run_train_sequence(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
             "descriptor": tables.descriptor_array(db.astype(np.float32))}), "sequences",
             metadata={"length": str(s.length)})
         write_text_atomic(tmp / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+        write_tracked(tmp, metrics, s.length)
         write_effective_config(cfg, tmp, stage="train-sequence", inputs=inputs)
     if ckpt_path.exists():
         ckpt_path.unlink()
         partial.rmdir()
     return out
+
+
+def headline(metrics: dict, length: int) -> dict:
+    """The figures compared across retrains: recall@1 within 2 m of the sequence descriptor at the
+    configured length (key `recall_at_1_2m_<length>_frames`, the paper's 6 by default) and of single
+    frames; None where there were no query windows."""
+    recall = metrics.get("recall", {})
+    return {f"recall_at_1_2m_{length}_frames": recall.get(f"length_{length}", {}).get("recall_at_1_2m"),
+            "recall_at_1_2m_single_frame": recall.get("single_frame", {}).get("recall_at_1_2m")}
+
+
+def write_tracked(out: Path, metrics: dict, length: int) -> None:
+    """headline.json (`headline`) and plots/loss.csv (`epoch,loss`, epoch n: the mean loss of the n-th pass)."""
+    from pipeline.io.tracked import write_headline, write_plot_table
+
+    write_headline(out, headline(metrics, length))
+    write_plot_table(out, "loss", ["epoch", "loss"], enumerate(metrics["loss_history"], start=1))
 
 
 def evaluate_lengths(model, whitening, db: np.ndarray, frames: Frames, train: np.ndarray, queries: list[str],

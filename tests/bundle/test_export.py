@@ -26,8 +26,13 @@ def test_export_writes_a_verified_bundle_and_its_archive(exported):
     m = verify_bundle(bundle)
     assert {"map/map.yaml", "map/map.pgm", "db/database_ipa.parquet", "db/database_rpa.parquet", "db/catalog.parquet",
             "models/describer.onnx", "models/describer.json", "filter.yaml"} <= set(m["files"])
-    for key in ("bundle_version", "site", "created", "code_version", "config", "dvc_lock_sha256"):
+    for key in ("bundle_version", "site", "created", "code_version", "config", "provenance"):
         assert key in m
+    # built outside DVC here, and said so; each input hashed as its files are
+    from pipeline.bundle.provenance import tree_sha256
+
+    assert m["provenance"]["built_by"] == "siteloc export, outside DVC" and "no dvc.lock" in m["provenance"]["note"]
+    assert m["provenance"]["inputs"]["index"]["sha256"] == tree_sha256(index)[0]
     assert (bundle / "db" / "database_ipa.parquet").read_bytes() == (index / "database_ipa.parquet").read_bytes()
     assert bundle.with_name(bundle.name + ".tar.gz").is_file()
 

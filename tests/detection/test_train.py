@@ -12,6 +12,7 @@ from pipeline.config import load_config
 from pipeline.detection.train import TrainingError, run_train_detector
 from pipeline.ingest import run_ingest
 from pipeline.sitegen.render import egl_available
+from tests.tracked_files import approx, read_headline, read_plot
 
 pytestmark = pytest.mark.skipif(not egl_available(), reason="no headless EGL context for the reference site")
 
@@ -37,6 +38,11 @@ def test_training_lowers_the_loss_and_writes_safetensors(site, tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     hist = m["loss_history"]
     assert len(hist) == 30 and sum(hist[-10:]) < sum(hist[:10])
+    assert read_headline(out) == {"loss_first": approx(hist[0]), "loss_last_50_mean": approx(sum(hist) / 30),
+                                  "val_loss": approx(m["val_loss"])}
+    curve = read_plot(out, "loss", ["iteration", "loss"])
+    assert [r["iteration"] for r in curve] == list(range(30))  # 0-based, as the training loop counts
+    assert [r["loss"] for r in curve] == [approx(v) for v in hist]
     c = json.loads((out / "config.json").read_text())
     assert c["builder"]["num_classes"] == 9 and c["weights_source"].startswith("none")
     from safetensors.torch import load_file
@@ -73,7 +79,9 @@ def test_interrupted_training_resumes_from_its_checkpoint(site, tmp_path, monkey
     resumed = []
     monkeypatch.setattr(T, "_loss", lambda *a: (resumed.append(1), real(*a))[1])
     out = run_train_detector(cfg, inputs={"data": site}, outputs={"out": tmp_path / "det"}, progress=False)
-    assert len(json.loads((out / "metrics.json").read_text())["loss_history"]) == 12
+    hist = json.loads((out / "metrics.json").read_text())["loss_history"]
+    assert len(hist) == 12 and len(read_plot(out, "loss", ["iteration", "loss"])) == 12  # the resumed part too
+    assert read_headline(out)["loss_first"] == approx(hist[0])
     # --force: another training's checkpoint is discarded and training starts afresh
     monkeypatch.setattr(T, "_loss", failing)
     calls["n"] = 0
@@ -135,6 +143,12 @@ def test_evaluate_cli_scores_held_out_stops_and_draws_them(site, tmp_path):
     assert set(m["per_class"]) == set(json.loads((tmp_path / "m" / "config.json").read_text())["classes"])
     assert sum(v["gt"] for v in m["per_class"].values()) > 0
     assert m["map_50"] is None or 0.0 <= m["map_50"] <= 1.0
+    assert read_headline(tmp_path / "e") == {"map_50": approx(m["map_50"]), "map_50_95": approx(m["map_50_95"])}
+    ap = read_plot(tmp_path / "e", "ap_per_class", ["class", "ap_50", "ap_50_95"])
+    assert [r["class"] for r in ap] == json.loads((tmp_path / "m" / "config.json").read_text())["classes"]
+    for r in ap:  # an empty cell where metrics.json has null (a class without ground truth)
+        v = m["per_class"][r["class"]]
+        assert (r["ap_50"], r["ap_50_95"]) == (approx(v["ap_50"]), approx(v["ap_50_95"]))
     assert "mAP@0.5" in res.output
     assert Image.open(tmp_path / "e" / "predictions.png").size[0] > 400
     json.loads((tmp_path / "e" / "detections.json").read_text())

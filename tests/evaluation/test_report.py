@@ -218,3 +218,61 @@ def test_cli_reports_and_refuses_bad_inputs_clearly(micro_bundle, tmp_path):
     res = runner.invoke(app, ["evaluate", str(tmp_path / "missing"), str(ing), "--out", str(tmp_path / "y"),
                               "--config", "ci"])
     assert res.exit_code == 1 and "missing" in res.output and "Traceback" not in res.output
+
+
+def test_tracked_files_of_the_report_agree_with_metrics_and_estimates(report):
+    from pipeline.evaluation.report import HEADLINE_KEYS
+    from pipeline.io import tables
+    from tests.tracked_files import approx, read_headline, read_plot
+
+    _, _, _, out = report
+    doc = json.loads((out / "metrics.json").read_text())
+    methods = list(doc["summary"])
+    assert read_headline(out) == {m: {k: approx(doc["summary"][m][k]) for k in HEADLINE_KEYS} for m in methods}
+    assert set(HEADLINE_KEYS) == {"error_p90_global_m", "error_mean_converged_m", "recovered", "kidnaps",
+                                  "recovered_within_15"}
+    cdf = read_plot(out, "error_cdf", ["error_m", *methods])
+    grid = [r["error_m"] for r in cdf]
+    assert grid[:101] == [approx(0.05 * i) for i in range(101)] and grid == sorted(grid)
+    for m in methods:  # recomputed from the estimates tables: every step before the replay's first kidnapping
+        t = tables.read_table(out / "estimates" / f"{m}.parquet", "estimates").to_pydict()
+        first: dict = {}
+        for r, k, s, kid in zip(t["run"], t["trial"], t["step"], t["kidnapped"], strict=True):
+            if kid and s > 0:
+                first[(r, k)] = min(first.get((r, k), s), s)
+        err = np.array([e for r, k, s, e in zip(t["run"], t["trial"], t["step"], t["error_xy"], strict=True)
+                        if s < first.get((r, k), 10**9)])
+        share = [r[m] for r in cdf]
+        assert share == sorted(share) and share[-1] == approx(np.isfinite(err).mean())  # 1 when all are finite
+        for r in cdf[::7]:
+            assert r[m] == approx(np.mean(err <= r["error_m"] + 1e-9))
+    rec = read_plot(out, "recovery_steps", ["kidnapping", *methods])
+    labels = [f"{r['run']}@{k} trial {r['trial']}" for r in doc["replays"]["proposed"] for k in r["kidnaps"]]
+    assert [r["kidnapping"] for r in rec] == labels and labels
+    for m in methods:
+        steps = {f"{r['run']}@{k} trial {r['trial']}": s for r in doc["replays"][m]
+                 for k, s in zip(r["kidnaps"], r["recovery_steps"], strict=True)}
+        assert [r[m] for r in rec] == [steps.get(lb) for lb in labels]  # None: never recovered (or no replay)
+
+
+def test_error_cdf_and_recovery_tables_by_hand():
+    from pipeline.evaluation.report import error_cdf_table, error_grid, recovery_steps_table
+
+    assert list(error_grid(0.0)) == list(error_grid(5.0)) == [round(0.05 * i, 2) for i in range(101)]
+    assert list(error_grid(6.2)[101:]) == [5.5, 6.0, 6.5]
+    assert list(error_grid(26.0)[-3:]) == [20.0, 25.0, 30.0]
+    a = _replay([0.0, 0.1, 7.0, 0.02], kidnaps=[3])  # global: 0.0, 0.1, 7.0
+    b = _replay([np.nan, 0.3])
+    columns, rows = error_cdf_table({"proposed": [a], "amcl": [b]})
+    assert columns == ["error_m", "proposed", "amcl"]
+    by = {r[0]: r[1:] for r in rows}
+    assert rows[-1][0] == 7.0 and by[7.0] == (1.0, 0.5)  # a NaN step is a step, never under any error
+    assert by[0.0] == (pytest.approx(1 / 3), 0.0) and by[0.1] == (pytest.approx(2 / 3), 0.0)
+    assert by[0.3] == (pytest.approx(2 / 3), 0.5)
+    replays = {"proposed": [{"run": "q0", "trial": 0, "kidnaps": [5, 9], "recovery_steps": [3, None]},
+                            {"run": "q0", "trial": 1, "kidnaps": [5, 9], "recovery_steps": [4, 2]}],
+               "image_only": [{"run": "q0", "trial": 0, "kidnaps": [5, 9], "recovery_steps": [None, 1]}]}
+    columns, rows = recovery_steps_table(replays)
+    assert columns == ["kidnapping", "proposed", "image_only"]
+    assert rows == [("q0@5 trial 0", 3, None), ("q0@9 trial 0", None, 1), ("q0@5 trial 1", 4, None),
+                    ("q0@9 trial 1", 2, None)]

@@ -118,6 +118,29 @@ def test_evaluate_writes_table_one_and_the_seeding_comparison(prior_dirs):
     assert all(s["replays"] == len(sd["starts"]) > 0 for s in sd["summary"].values())
     for f in ("report.md", "table_one.png", "layer_weights.png", "seeding.png", "examples.png", "config.yaml"):
         assert (root / "r" / f).is_file()
+    from tests.tracked_files import approx, read_headline, read_plot
+
+    h = read_headline(root / "r")
+    t1 = m["table_one"]
+    conf = next(r for r in t1 if r["compression"] == m["settings"]["compression"])
+    assert h["table_one"] == {"area_accuracy_best": approx(max(r["area_accuracy"] for r in t1)),
+                              "room_accuracy_best": approx(max(r["room_accuracy"] for r in t1)),
+                              "area_accuracy": approx(conf["area_accuracy"]),
+                              "room_accuracy": approx(conf["room_accuracy"]),
+                              "changed_area_accuracy_best": approx(max(r["changed_area_accuracy"] for r in t1)),
+                              "changed_room_accuracy_best": approx(max(r["changed_room_accuracy"] for r in t1))}
+    assert h["seeding"] == {k: approx(sd[k]) for k in ("prior_hit_rate", "prior_top1_rate", "retrieval_top1_rate")}
+    for name, v in sd["summary"].items():
+        assert h[f"seeding_{name}"] == {k: approx(v[k]) for k in ("replays", "converged", "within_15",
+                                                                  "converged_step_median")}
+    assert set(h) == {"table_one", "seeding", "seeding_area_prior", "seeding_candidates", "seeding_uniform"}
+    curve = read_plot(root / "r", "seeding", ["steps", "area_prior", "candidates", "uniform"])
+    assert [r["steps"] for r in curve] == list(range(max(r["steps"] for r in sd["replays"]["uniform"])))
+    for name, reps in sd["replays"].items():
+        conv = [r["converged_step"] for r in reps if r["converged_step"] is not None]
+        assert curve[-1][name] == approx(len(conv) / len(reps))  # every converged replay by the last step
+        for row in curve[::5]:
+            assert row[name] == approx(sum(c <= row["steps"] for c in conv) / len(reps))
 
 
 def test_evaluate_refuses_half_a_seeding_request(prior_dirs):

@@ -160,6 +160,17 @@ def test_cli_builds_the_index_evaluates_and_answers_a_query(site, extracted, tmp
             if key != "dims" and t["queries_with_positive"]:
                 assert 0 <= t["recall_at_1"] <= t["recall_at_4"] <= t["recall_at_10"] <= 1
     assert (tmp_path / "ev" / "recall.png").is_file() and (tmp_path / "ev" / "examples.png").is_file()
+    from tests.tracked_files import approx, read_headline, read_plot
+
+    main = {s: m["variants"][f"{v} / pca"]["2m_30deg"] for s, v in (("ipa", "ipa"), ("ipa_rpa", "ipa+rpa"))}
+    assert read_headline(tmp_path / "ev") == {s: {"map_at_4": approx(t["map_at_4"]),
+                                                  "recall_at_1": approx(t["recall_at_1"])} for s, t in main.items()}
+    curve = read_plot(tmp_path / "ev", "recall_at_n", ["n", "ipa", "ipa_rpa"])
+    assert [r["n"] for r in curve] == [1, 4, 10, 50]
+    for r in curve:
+        n = int(r["n"])
+        assert (r["ipa"], r["ipa_rpa"]) == (approx(main["ipa"][f"recall_at_{n}"]),
+                                            approx(main["ipa_rpa"][f"recall_at_{n}"]))
     query_image = ing / tables.read_table(ing / "images.parquet", "images").column("image_id")[0].as_py()
     res = runner.invoke(app, ["query", str(tmp_path / "idx"), str(query_image), "--model", str(model), "--out",
                               str(tmp_path / "q.json"), "-c", "ci", *sets])

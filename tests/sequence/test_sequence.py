@@ -118,6 +118,14 @@ def test_training_builds_a_whitened_database_and_resumes(frames, tmp_path, monke
     w = PCAWhitening.load(out / "whitening.npz")
     assert w.n_components_ == m["dims"] == d.shape[1]
     assert {"length_1", "length_3", "single_frame"} <= set(m["recall"])
+    from tests.tracked_files import approx, read_headline, read_plot
+
+    assert read_headline(out) == {  # sequence.length=3 here (the paper's 6: recall_at_1_2m_6_frames)
+        "recall_at_1_2m_3_frames": approx(m["recall"]["length_3"]["recall_at_1_2m"]),
+        "recall_at_1_2m_single_frame": approx(m["recall"]["single_frame"]["recall_at_1_2m"])}
+    loss = read_plot(out, "loss", ["epoch", "loss"])
+    assert [r["epoch"] for r in loss] == [1, 2, 3, 4] and [r["loss"] for r in loss] == [approx(v) for v in
+                                                                                      m["loss_history"]]
 
     # An interruption after 2 epochs resumes there: only the 2 remaining epochs run again.
     calls = []
