@@ -12,7 +12,8 @@ from pipeline.errors import ConfigError
 @pytest.mark.parametrize("preset", sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")))
 def test_presets_are_valid(preset):
     cfg = load_config(preset)
-    assert cfg.preset == preset
+    # configs/params.yaml is the demo preset resolved for DVC, and keeps the name it was made from
+    assert cfg.preset == ("demo" if preset == "params" else preset)
 
 
 def test_presets_exist():
