@@ -118,8 +118,6 @@ def run_demo(
     With `cfg`, configs/params.yaml is first made that config (fully defaulted), so DVC reruns exactly the
     stages whose parameters it changes. The summary goes to data/demo-summary.json.
     """
-    from dvc.exceptions import DvcException
-
     from pipeline.io.atomic import write_text_atomic
 
     root = project_root(root)
@@ -128,7 +126,9 @@ def run_demo(
     # The stages' commands are `siteloc ...`: the one of this interpreter, whatever PATH says.
     os.environ["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"
     steps: list[DemoStep] = []
-    with _open_repo(root) as repo:
+    with _open_repo(root) as repo:  # refuses clearly when DVC is not installed
+        from dvc.exceptions import DvcException
+
         stages = _ordered_stages(repo)
         produced = {o.fs_path for s in stages for o in s.outs}
         for stage in stages:
