@@ -5,6 +5,7 @@ from __future__ import annotations
 import typer
 
 from stages import (
+    bag,
     config_cmd,
     demo,
     evaluate,
@@ -37,6 +38,8 @@ app = typer.Typer(
 )
 
 app.command("ingest", help=help_text(ingest.HELP))(ingest.ingest)
+app.command("ingest-bag", help=help_text(bag.INGEST_HELP))(bag.ingest_bag)
+app.command("export-bag", help=help_text(bag.EXPORT_HELP))(bag.export_bag)
 app.command("ingest-log", help=help_text(ingest_log.HELP))(ingest_log.ingest_log)
 app.command("synth", help=help_text(synth.HELP))(synth.synth)
 app.command("train-detector", help=help_text(train_detector.HELP))(train_detector.train_detector)

@@ -70,12 +70,29 @@ class Laser(_Strict):
         return math.radians(self.angle_max_deg - self.angle_min_deg) / (self.beams - 1)
 
 
+class Extrinsic(_Strict):
+    """parent_from_child in 3-D: translation in metres and a unit quaternion (x, y, z, w)."""
+
+    xyz: tuple[float, float, float]
+    quat_xyzw: tuple[float, float, float, float]
+
+
+class Extrinsics(_Strict):
+    """The sensors' 3-D mounts as a recording's tf_static gave them (`siteloc ingest-bag`); optional.
+
+    base_from_camera is the camera's optical frame (z forward, x right, y down), as ROS names it."""
+
+    base_from_camera: Extrinsic | None = None
+    base_from_laser: Extrinsic | None = None
+
+
 class Site(_Strict):
     name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
     camera: Camera
     rig: Rig = Rig()
     laser: Laser = Laser()
     classes: tuple[str, ...] = Field(DEFAULT_CLASSES, min_length=1)
+    extrinsics: Extrinsics | None = None
 
     @model_validator(mode="after")
     def _unique_classes(self) -> Site:
@@ -120,4 +137,4 @@ def read_site(path: Path) -> Site:
 def write_site(path: Path, site: Site) -> Path:
     from pipeline.io.atomic import write_text_atomic
 
-    return write_text_atomic(path, yaml.safe_dump(site.model_dump(mode="json"), sort_keys=False))
+    return write_text_atomic(path, yaml.safe_dump(site.model_dump(mode="json", exclude_none=True), sort_keys=False))

@@ -1,0 +1,398 @@
+"""Stage `ingest-bag`: robot recordings -> a site capture directory that `siteloc ingest` takes unchanged.
+
+Each recording is one drive. Its camera frames give the capture stops (`pipeline.rosbag.stops`) and,
+when it has laser scans, it becomes `runs/<name>/`: one step per scan with the odometry (odom ->
+base_link) and the reference (map -> base_link through tf) interpolated at the scan's stamp, and the
+camera frame nearest in time (within `sync_tolerance`). A step whose reference jumps against the
+odometry by more than `kidnap_jump_m` is flagged kidnapped. site.yaml comes from CameraInfo, the first
+scan and tf_static; the map from `/map` or `map_yaml`. What is dropped, and why, is in bag_report.json.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import SitelocConfig, write_effective_config
+from pipeline.errors import InputError, Problem
+from pipeline.io.atomic import atomic_dir, write_bytes_atomic, write_text_atomic
+from pipeline.rosbag.read import Recording, read_recording
+from pipeline.rosbag.stops import stops_every, turning_stops
+from pipeline.runtime.motion import wrap_angle
+
+
+@dataclass
+class BagOptions:
+    roles: dict[str, str] = field(default_factory=dict)  # role -> topic
+    offsets: dict[str, float] = field(default_factory=dict)  # role -> seconds added to its stamps
+    frames: dict[str, str] = field(default_factory=dict)  # map / odom / base -> frame name
+    stops: str = "turns"  # turns | every
+    stops_every_m: float = 2.0
+    stops_from: list[str] = field(default_factory=list)  # recordings to take stops from (empty: all)
+    stop_radius_m: float = 0.05
+    view_tolerance_deg: float | None = None  # default: ingest.heading_tolerance_deg (turns), 15 (every)
+    sync_tolerance_s: float = 0.05
+    tf_max_gap_s: float = 0.5
+    kidnap_jump_m: float = 1.0
+    kidnap_jump_deg: float = 45.0
+    scan_stride: int = 1
+    name: str | None = None
+
+
+@dataclass
+class Drive:
+    rec: Recording
+    stops: list = field(default_factory=list)
+    incomplete: list = field(default_factory=list)
+    run: dict | None = None
+    report: dict = field(default_factory=dict)
+
+
+def _frames(rec: Recording, opts: BagOptions) -> tuple[str, str, str]:
+    m = opts.frames.get("map", "map")
+    odom = opts.frames.get("odom", rec.odom_frame or "odom")
+    base = opts.frames.get("base", rec.base_frame or "base_link")
+    known = rec.tf.frames()
+    fix = "record /tf with odom -> base_link (or /odom) and the localization's map -> odom; --frame names others"
+    for role, f in (("base", base), ("odom", odom), ("map", m)):
+        if f not in known:
+            raise InputError(f"{rec.path}: no frame '{f}' in tf", [Problem(
+                f"{rec.path} /tf", f"the {role} frame '{f}' never appears (frames: {sorted(known)})", fix=fix)])
+    if rec.tf.path(m, base) is None:
+        raise InputError(f"{rec.path}: tf has no map -> base_link", [Problem(
+            f"{rec.path} /tf", f"'{m}' and '{base}' are not connected (tree: {_tree(rec)})", fix=fix)])
+    return m, odom, base
+
+
+def _tree(rec: Recording) -> str:
+    return ", ".join(f"{e.parent} -> {c}" for c, e in sorted(rec.tf.edges.items()))
+
+
+def _mount(rec: Recording, base: str, frame: str | None, what: str):
+    """base_from_sensor at the first stamp; the sensor must hang off the base in tf."""
+    if frame is None:
+        return None
+    if rec.tf.path(base, frame) is None:
+        raise InputError(f"{rec.path}: the {what} is not in the tf tree", [Problem(
+            f"{rec.path} /tf_static", f"no transform between '{base}' and the {what} frame '{frame}'",
+            fix=f"record /tf_static with the {what}'s mount ({base} -> {frame})")])
+    return rec.tf.lookup(base, frame, [0.0])
+
+
+def _gaps(rec: Recording, m: str, base: str, stamps: np.ndarray) -> list[dict]:
+    out = []
+    up, down = rec.tf.path(m, base)
+    for child in up[:-1] + down[:-1]:
+        for a, b in rec.tf.gaps(child):
+            inside = int(np.sum((stamps > a) & (stamps < b)))
+            out.append({"edge": f"{rec.tf.edges[child].parent} -> {child}", "from_s": round(a - _t0(rec), 3),
+                        "to_s": round(b - _t0(rec), 3), "gap_s": round(b - a, 3), "stamps_inside": inside})
+    return out
+
+
+def _t0(rec: Recording) -> float:
+    firsts = [f[0] for f in rec.frames[:1]] + ([float(rec.scan_stamps[0])] if rec.scan_stamps is not None else [])
+    return min(firsts) if firsts else 0.0
+
+
+def _extract(rec: Recording, site_offsets, opts: BagOptions, tol_deg: float, use_stops: bool) -> Drive:
+    m, odom_f, base = _frames(rec, opts)
+    drive = Drive(rec)
+    cam_mount = _mount(rec, base, rec.camera_frame, "camera")
+    dropped = {"duplicate_stamps": len(rec.dropped)}
+    if rec.frames:
+        fs = np.array([f[0] for f in rec.frames])
+        map_from_base = rec.tf.lookup(m, base, fs)
+        ok = map_from_base.valid
+        dropped["frames_without_pose"] = int((~ok).sum())
+        map_from_cam = map_from_base * cam_mount if cam_mount is not None else map_from_base
+        cam = map_from_cam.floor_pose(2)
+        keep = np.nonzero(ok)[0]
+        if use_stops and len(keep):
+            tol = math.radians(tol_deg)
+            if opts.stops == "every":
+                st, inc = stops_every(fs[keep], map_from_base.xyz[keep, :2], cam[keep], site_offsets,
+                                      spacing=opts.stops_every_m, tolerance=tol)
+            else:
+                st, inc = turning_stops(fs[keep], map_from_base.xyz[keep, :2], cam[keep], site_offsets,
+                                        radius=opts.stop_radius_m, tolerance=tol)
+            for s in st:
+                s.frames = [int(keep[f]) for f in s.frames]
+            drive.stops, drive.incomplete = st, inc
+        drive.report["cam_poses"] = cam
+    if rec.ranges is not None:
+        idx = np.arange(0, len(rec.scan_stamps), max(1, opts.scan_stride))
+        t = rec.scan_stamps[idx]
+        odom = rec.tf.lookup(odom_f, base, t)
+        ref = rec.tf.lookup(m, base, t)
+        ok = odom.valid
+        dropped["scans_without_odometry"] = int((~ok).sum())
+        dropped["scans_without_reference"] = int((ok & ~ref.valid).sum())
+        idx, t = idx[ok], t[ok]
+        odom_p, ref_p = odom.floor_pose(0)[ok], np.where(ref.valid[ok, None], ref.floor_pose(0)[ok], np.nan)
+        image = [None] * len(t)
+        if rec.frames and len(t):
+            fs = np.array([f[0] for f in rec.frames])
+            near = np.clip(np.searchsorted(t, fs), 1, len(t) - 1) if len(t) > 1 else np.zeros(len(fs), int)
+            near = np.where(np.abs(t[near - 1] - fs) <= np.abs(t[near] - fs), near - 1, near) if len(t) > 1 else near
+            dt = np.abs(t[near] - fs)
+            best: dict[int, int] = {}
+            for fi in np.argsort(dt, kind="stable"):
+                if dt[fi] <= opts.sync_tolerance_s and int(near[fi]) not in best:
+                    best[int(near[fi])] = int(fi)
+            for step, fi in best.items():
+                image[step] = fi
+            dropped["frames_without_scan"] = len(fs) - len(best)
+            dropped["sync_tolerance_s"] = opts.sync_tolerance_s
+        drive.run = {"t": t - t[0] if len(t) else t, "odom": odom_p, "gt": ref_p, "ranges": rec.ranges[idx],
+                     "image": image, "kidnapped": _kidnapped(odom_p, ref_p, opts)}
+        dropped["tf_gaps"] = _gaps(rec, m, base, np.r_[t, [f[0] for f in rec.frames]])
+    drive.report["dropped"] = dropped
+    return drive
+
+
+def _kidnapped(odom: np.ndarray, ref: np.ndarray, opts: BagOptions) -> list[bool]:
+    """Step k is kidnapped when the reference moved unlike the odometry since step k-1."""
+    from pipeline.rosbag.export import _compose, _inverse
+
+    out = [False] * len(odom)
+    if len(odom) < 2:
+        return out
+    d_odom = _compose(_inverse(odom[:-1]), odom[1:])
+    d_ref = _compose(_inverse(ref[:-1]), ref[1:])
+    jump = np.hypot(*(d_ref[:, :2] - d_odom[:, :2]).T)
+    turn = np.abs(wrap_angle(d_ref[:, 2] - d_odom[:, 2]))
+    flag = (jump > opts.kidnap_jump_m) | (turn > math.radians(opts.kidnap_jump_deg))
+    for k in np.nonzero(flag)[0]:
+        out[k + 1] = True
+    return out
+
+
+def _site(recs: list[Recording], drives: list[Drive], name: str, opts: BagOptions):
+    from pipeline.io.site import Camera, Extrinsic, Extrinsics, Laser, LaserMount, Site
+
+    with_cam = [r for r in recs if r.intrinsics is not None]
+    if not with_cam:
+        raise InputError("no camera in any recording", [Problem(str(r.path), "has no camera topic",
+                                                                fix="record the camera (Image or CompressedImage)")
+                                                        for r in recs])
+    k = with_cam[0].intrinsics
+    for r in with_cam[1:]:
+        if r.intrinsics != k:
+            raise InputError("recordings disagree on the camera", [Problem(
+                f"{r.path} {r.topics['camera_info']}", f"intrinsics {r.intrinsics} differ from {k} "
+                f"({with_cam[0].path})", fix="ingest recordings of one calibrated camera together")])
+    camera = Camera(width=k.width, height=k.height, fx=k.fx, fy=k.fy, cx=k.cx, cy=k.cy)
+    laser, ext = Laser(), {}
+    with_laser = [r for r in recs if r.laser is not None]
+    for r in with_laser[1:]:
+        if r.laser["beams"] != with_laser[0].laser["beams"]:
+            raise InputError("recordings disagree on the laser", [Problem(
+                f"{r.path} {r.topics['scan']}", f"{r.laser['beams']} beams, {with_laser[0].path} has "
+                f"{with_laser[0].laser['beams']}", fix="ingest recordings of one laser configuration together")])
+    if with_laser:
+        r = with_laser[0]
+        g = r.laser
+        _, _, base = _frames(r, opts)
+        mount = _mount(r, base, r.laser_frame, "laser")
+        mx, my, myaw = mount.floor_pose(0)[0]
+        laser = Laser(angle_min_deg=round(math.degrees(g["angle_min"]), 4),
+                      angle_max_deg=round(math.degrees(g["angle_min"] + (g["beams"] - 1) * g["angle_increment"]), 4),
+                      beams=g["beams"], range_max=g["range_max"],
+                      mount=LaserMount(x=round(mx, 6), y=round(my, 6), yaw_deg=round(math.degrees(myaw), 6)))
+        ext["base_from_laser"] = Extrinsic(xyz=tuple(np.round(mount.xyz[0], 6)),
+                                           quat_xyzw=tuple(np.round(mount.rot.as_quat()[0], 9)))
+    r = with_cam[0]
+    _, _, base = _frames(r, opts)
+    cm = _mount(r, base, r.camera_frame, "camera")
+    ext["base_from_camera"] = Extrinsic(xyz=tuple(np.round(cm.xyz[0], 6)),
+                                        quat_xyzw=tuple(np.round(cm.rot.as_quat()[0], 9)))
+    return Site(name=name, camera=camera, laser=laser, extrinsics=Extrinsics(**ext))
+
+
+def _map(recs: list[Recording], map_yaml: Path | None):
+    from pipeline.io.map_yaml import read_map
+
+    if map_yaml is not None:
+        return read_map(map_yaml)
+    for r in recs:
+        if r.grid is not None:
+            return r.grid
+    raise InputError("no map", [Problem(str(recs[0].path), "no nav_msgs/OccupancyGrid topic in any recording",
+                                        fix="record /map (map_server publishes it) or pass --map map.yaml")])
+
+
+def _write_runs(tmp: Path, drives: list[Drive], site) -> dict:
+    out = {}
+    for d in drives:
+        if d.run is None:
+            continue
+        run, name = d.run, d.rec.name
+        rdir = tmp / "runs" / name
+        rdir.mkdir(parents=True)
+        rows = []
+        for k in range(len(run["t"])):
+            img = ""
+            if run["image"][k] is not None:
+                _, _, data, fmt = d.rec.frames[run["image"][k]]
+                img = f"images/runs/{name}/{k:04d}.{'jpg' if fmt == 'jpeg' else 'png'}"
+                write_bytes_atomic(tmp / img, data)
+            g = run["gt"][k]
+            gt = ["", "", ""] if np.isnan(g[0]) else [repr(float(v)) for v in g]
+            rows.append([repr(float(run["t"][k])), *(repr(float(v)) for v in run["odom"][k]), *gt, img,
+                         int(run["kidnapped"][k])])
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(["t", "odom_x", "odom_y", "odom_theta", "gt_x", "gt_y", "gt_theta", "image", "kidnapped"])
+        w.writerows(rows)
+        write_text_atomic(rdir / "trajectory.csv", buf.getvalue())
+        with open(rdir / "scans.npy", "wb") as fh:
+            np.save(fh, np.asarray(run["ranges"], dtype=np.float32), allow_pickle=False)
+        out[name] = {"steps": len(rows), "images": sum(1 for r in rows if r[7]),
+                     "kidnapped_steps": int(np.sum(run["kidnapped"]))}
+    return out
+
+
+def _write_captures(tmp: Path, drives: list[Drive], site) -> int:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["image", "stop_id", "view", "x", "y", "theta", "room", "area"])
+    n = 0
+    for d in drives:
+        cam = d.report.get("cam_poses")
+        for s in d.stops:
+            stop_id = f"stop{n:04d}"
+            for view, fi in enumerate(s.frames):
+                _, _, data, fmt = d.rec.frames[fi]
+                rel = f"images/{stop_id}_v{view}.{'jpg' if fmt == 'jpeg' else 'png'}"
+                write_bytes_atomic(tmp / rel, data)
+                x, y, th = (round(float(v), 6) for v in cam[fi])
+                w.writerow([rel, stop_id, view, x, y, th, "", ""])
+            n += 1
+    write_text_atomic(tmp / "captures.csv", buf.getvalue())
+    return n
+
+
+def _annotations(src: Path, tmp: Path) -> dict:
+    """COCO boxes for the written stop images: entries are matched by file name, or else by the bytes of the
+    file they name (beside the COCO file), so boxes drawn on an earlier extraction carry over."""
+    import hashlib
+
+    doc = json.loads(Path(src).read_text())
+    ours = {}
+    for p in sorted((tmp / "images").glob("stop*")):
+        ours[hashlib.sha256(p.read_bytes()).hexdigest()] = p.relative_to(tmp).as_posix()
+    names = set(ours.values())
+    kept, by_content, missing = [], 0, []
+    for im in doc.get("images", []):
+        name = im.get("file_name", "")
+        if name in names:
+            kept.append(im)
+            continue
+        f = Path(src).parent / name
+        digest = hashlib.sha256(f.read_bytes()).hexdigest() if f.is_file() else None
+        if digest in ours:
+            kept.append({**im, "file_name": ours[digest]})
+            by_content += 1
+        else:
+            missing.append(name)
+    ids = {im["id"] for im in kept}
+    doc = {**doc, "images": kept, "annotations": [a for a in doc.get("annotations", []) if a.get("image_id") in ids]}
+    write_text_atomic(tmp / "annotations.json", json.dumps(doc, indent=1) + "\n")
+    return {"images": len(kept), "matched_by_content": by_content, "not_in_the_recordings": len(missing),
+            "boxes": len(doc["annotations"])}
+
+
+def _report_md(rep: dict) -> str:
+    lines = [f"# Bag ingest report: {rep['site']}", "", f"{rep['stops']} stops from {len(rep['recordings'])} "
+             f"recordings ({rep['messages']} messages in {rep['seconds']:.1f} s, {rep['messages_per_s']:.0f} msg/s).",
+             "", "| recording | frames | scans | stops | incomplete stops | dropped |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    for name, r in rep["recordings"].items():
+        drop = ", ".join(f"{k} {v}" for k, v in r["dropped"].items() if isinstance(v, int) and v) or "none"
+        lines.append(f"| {name} | {r['frames']} | {r['scans']} | {r['stops']} | {len(r['incomplete_stops'])} | "
+                     f"{drop} |")
+    for name, r in rep["recordings"].items():
+        for g in r["dropped"].get("tf_gaps", []):
+            lines.append(f"\n- {name}: tf {g['edge']} has no message from {g['from_s']} s to {g['to_s']} s "
+                         f"({g['gap_s']} s); {g['stamps_inside']} scans and frames in it have no pose")
+        for s in r["incomplete_stops"]:
+            lines.append(f"\n- {name}: at ({s['at'][0]:.2f}, {s['at'][1]:.2f}) t={s['t']:.1f} s: {s['why']}"
+                         + (f" (views {s['missing_views']})" if s["missing_views"] else ""))
+    if rep.get("ingest_needs"):
+        lines += ["", f"`siteloc ingest` needs: {rep['ingest_needs']}"]
+    return "\n".join(lines) + "\n"
+
+
+def run_ingest_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Path], options: BagOptions | None = None,
+                   force: bool = False, progress: bool = True) -> Path:
+    """Read `inputs['bags']` (paths) and write the capture directory `outputs['out']` (see module docstring)."""
+    from pipeline.ingest import validate_site_dir
+    from pipeline.io.map_yaml import write_map
+    from pipeline.io.site import DEFAULT_CLASSES, Rig, write_site
+    from pipeline.rosbag.bagfile import find_bags
+
+    opts = options or BagOptions()
+    out = Path(outputs["out"])
+    bags = find_bags(inputs["bags"])
+    unknown = [n for n in opts.stops_from if n not in {p.stem if p.is_file() else p.name for p in bags}]
+    if unknown:
+        raise InputError("--stops-from names no recording", [Problem(str(out), f"no recording named '{n}'")
+                                                              for n in unknown])
+    t_start = time.perf_counter()
+    recs = [read_recording(p, opts.roles, opts.offsets, opts.tf_max_gap_s, opts.sync_tolerance_s, progress)
+            for p in bags]
+    n_msgs = sum(r.messages for r in recs)
+    offsets = Rig().yaw_offsets
+    tol_deg = opts.view_tolerance_deg or (15.0 if opts.stops == "every" else cfg.ingest.heading_tolerance_deg)
+    drives = [_extract(r, offsets, opts, tol_deg, not opts.stops_from or r.name in opts.stops_from) for r in recs]
+    name = opts.name or "".join(c if c.isalnum() or c in "_.-" else "_" for c in out.name) or "site"
+    site = _site(recs, drives, name, opts)
+    occ = _map(recs, inputs.get("map"))
+    n_stops = sum(len(d.stops) for d in drives)
+    if n_stops == 0:
+        raise InputError("no capture stops", [Problem(str(d.rec.path), f"{len(d.incomplete)} incomplete stops, none "
+                                                      "complete", fix="turn in place through 360 deg at each stop, "
+                                                      "or use --stops every for a continuous drive") for d in drives])
+    spread = max(s.spread for d in drives for s in d.stops)
+    head = math.degrees(max(s.heading_error for d in drives for s in d.stops))
+    needs = []
+    if spread > cfg.ingest.position_tolerance_m:
+        needs.append(f"--set ingest.position_tolerance_m={math.ceil(spread * 100) / 100 + 0.01:.2f}")
+    if head > cfg.ingest.heading_tolerance_deg:
+        needs.append(f"--set ingest.heading_tolerance_deg={math.ceil(head) + 1}")
+    with atomic_dir(out, force=force) as tmp:
+        write_site(tmp / "site.yaml", site.model_copy(update={"classes": DEFAULT_CLASSES}))
+        write_map(tmp / "map.yaml", occ)
+        stops = _write_captures(tmp, drives, site)
+        runs = _write_runs(tmp, drives, site)
+        ann = _annotations(inputs["annotations"], tmp) if inputs.get("annotations") else None
+        seconds = time.perf_counter() - t_start
+        total = sum(len(r.frames) for r in recs)
+        rep = {"site": name, "stops": stops, "runs": runs, "messages": n_msgs, "seconds": round(seconds, 2),
+               "messages_per_s": round(n_msgs / max(seconds, 1e-9), 1), "frames": total,
+               "stop_spread_m": round(spread, 4), "stop_heading_error_deg": round(head, 3),
+               "ingest_needs": " ".join(needs), "annotations": ann, "options": asdict(opts), "recordings": {}}
+        for d in drives:
+            r = d.rec
+            rep["recordings"][r.name] = {
+                "path": str(r.path), "topics": r.topics, "frames": len(r.frames),
+                "scans": 0 if r.ranges is None else len(r.ranges), "stops": len(d.stops),
+                "incomplete_stops": [{"at": list(s.at), "t": round(s.stamp - _t0(r), 3), "missing_views":
+                                      s.missing_views, "why": s.why} for s in d.incomplete],
+                "dropped": d.report["dropped"]}
+        write_text_atomic(tmp / "bag_report.json", json.dumps(rep, indent=2) + "\n")
+        write_text_atomic(tmp / "bag_report.md", _report_md(rep))
+        write_effective_config(cfg, tmp, stage="ingest_bag", inputs={"bags": ",".join(map(str, bags))})
+        icfg = cfg.ingest.model_copy(update={
+            "position_tolerance_m": max(cfg.ingest.position_tolerance_m, spread + 0.01),
+            "heading_tolerance_deg": max(cfg.ingest.heading_tolerance_deg, head + 1.0)})
+        validate_site_dir(tmp, icfg, progress=False)  # what `siteloc ingest` will check, before anything is kept
+    return out

@@ -1,0 +1,248 @@
+"""Reading one recording into what a capture directory needs: frames, intrinsics, scans, tf, map.
+
+Topics are found by message type (sensor_msgs Image / CompressedImage, CameraInfo, LaserScan,
+nav_msgs Odometry and OccupancyGrid; /tf and /tf_static by name); `roles` overrides the choice
+(`camera=/front/image_raw`). Stamps are the messages' header stamps (measurement time), shifted by
+`offsets[role]` seconds for a sensor whose clock is known to be off. Every problem raises one InputError
+naming the topic and the message index; what is dropped (duplicate stamps) is listed in `dropped`.
+"""
+
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import InputError, Problem
+from pipeline.rosbag.bagfile import bag_name, open_reader
+from pipeline.rosbag.messages import CAMERA_INFO, COMPRESSED, GRID, IMAGE, ODOMETRY, SCAN, TF, stamp_of
+from pipeline.rosbag.messages import field as msg_field
+from pipeline.rosbag.transforms import TfBuffer
+
+ENCODINGS = ("rgb8", "bgr8", "mono8", "jpeg", "png")
+ROLE_TYPES = {"camera": (COMPRESSED, IMAGE), "camera_info": (CAMERA_INFO,), "scan": (SCAN,), "odom": (ODOMETRY,),
+              "map": (GRID,)}
+ROLES = tuple(ROLE_TYPES)
+
+
+@dataclass
+class Intrinsics:
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+
+@dataclass
+class Recording:
+    path: Path
+    name: str
+    frames: list[tuple[float, int, bytes, str]] = field(default_factory=list)  # stamp, index, data, jpeg|png
+    camera_frame: str | None = None
+    intrinsics: Intrinsics | None = None
+    scan_stamps: np.ndarray | None = None
+    ranges: np.ndarray | None = None  # (N, beams) float32
+    laser: dict | None = None  # angle_min, angle_increment, beams, range_max (radians, m)
+    laser_frame: str | None = None
+    odom_frame: str | None = None
+    base_frame: str | None = None
+    tf: TfBuffer = field(default_factory=TfBuffer)
+    grid: object | None = None  # OccupancyMap
+    topics: dict[str, str] = field(default_factory=dict)  # role -> topic
+    dropped: list[dict] = field(default_factory=list)
+    messages: int = 0  # messages read
+
+
+def _fail(path: Path, topic: str | None, message: str, fix: str, index: int | None = None):
+    where = f"{path}" + (f" {topic}" if topic else "") + (f" message {index}" if index is not None else "")
+    raise InputError(f"{path}: cannot use the recording", [Problem(where, message, fix=fix)])
+
+
+def choose_topics(path: Path, connections, roles: dict[str, str]) -> dict[str, str]:
+    """role -> topic: the overrides, else the one topic of the role's types (several: an error)."""
+    by_topic = {c.topic: c.msgtype for c in connections}
+    out: dict[str, str] = {}
+    for role, types in ROLE_TYPES.items():
+        if role in roles:
+            topic = roles[role]
+            if topic not in by_topic:
+                _fail(path, topic, f"--topic {role}={topic}: no such topic (it has {sorted(by_topic)})",
+                      "name a topic of the recording (see `siteloc ingest-bag --list`)")
+            if by_topic[topic] not in types:
+                _fail(path, topic, f"is {by_topic[topic]}, a {role} topic must be one of {list(types)}",
+                      f"pick a {role} topic of the right type")
+            out[role] = topic
+            continue
+        found = sorted(t for t, ty in by_topic.items() if ty in types)
+        if role == "camera" and len(found) > 1:  # image_raw and image_raw/compressed of one camera: prefer raw
+            compressed = [t for t in found if by_topic[t] == COMPRESSED]
+            found = compressed if len(compressed) == 1 else found
+        if len(found) > 1:
+            _fail(path, None, f"several {role} topics: {found}", f"choose one with --topic {role}=NAME")
+        if found:
+            out[role] = found[0]
+    for name in ("/tf", "/tf_static"):
+        if name in by_topic and by_topic[name] == TF:
+            out[name.strip("/")] = name
+    return out
+
+
+def _image_bytes(path: Path, topic: str, index: int, msg, typename: str) -> tuple[bytes, str]:
+    from PIL import Image
+
+    if typename == COMPRESSED:
+        data = bytes(msg.data)
+        fmt = "jpeg" if data[:3] == b"\xff\xd8\xff" else "png" if data[:8] == b"\x89PNG\r\n\x1a\n" else None
+        if fmt is None:
+            _fail(path, topic, f"compressed image format '{msg.format}' is not supported",
+                  f"siteloc reads {', '.join(ENCODINGS)} (re-encode, e.g. with image_transport republish)", index)
+        return data, fmt
+    enc = msg.encoding.lower()
+    if enc not in ("rgb8", "bgr8", "mono8"):
+        _fail(path, topic, f"image encoding '{msg.encoding}' is not supported",
+              f"siteloc reads {', '.join(ENCODINGS)}", index)
+    ch = 1 if enc == "mono8" else 3
+    raw = np.asarray(msg.data, dtype=np.uint8)
+    if msg.step < msg.width * ch or raw.size < msg.step * msg.height:
+        _fail(path, topic, f"image data has {raw.size} bytes, {msg.height} rows of step {msg.step} need more",
+              "the message is damaged; re-record it", index)
+    px = raw[: msg.step * msg.height].reshape(msg.height, msg.step)[:, : msg.width * ch]
+    px = px.reshape(msg.height, msg.width, ch) if ch == 3 else px
+    if enc == "bgr8":
+        px = px[:, :, ::-1]
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(px)).save(buf, format="PNG")
+    return buf.getvalue(), "png"
+
+
+def _intrinsics(path: Path, topic: str, index: int, msg) -> Intrinsics:
+    k = np.asarray(msg_field(msg, "k"), dtype=np.float64)
+    d = np.asarray(msg_field(msg, "d"), dtype=np.float64)
+    if k.size != 9 or k[0] <= 0 or k[4] <= 0:
+        _fail(path, topic, f"camera matrix K {k.tolist()} has no focal length",
+              "the camera is not calibrated: calibrate it (camera_calibration) and record CameraInfo", index)
+    if d.size and np.any(np.abs(d) > 1e-9):
+        _fail(path, topic, f"distortion D={np.round(d, 4).tolist()} is not zero: siteloc needs rectified images",
+              "record the rectified topic (image_rect, from image_proc) and its CameraInfo", index)
+    return Intrinsics(int(msg.width), int(msg.height), float(k[0]), float(k[4]), float(k[2]), float(k[5]))
+
+
+def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dict[str, float] | None = None,
+                   tf_max_gap: float = 0.5, tolerance: float = 0.05, progress: bool = False) -> Recording:
+    """Read a bag (see module docstring); raises InputError on anything siteloc cannot use."""
+    from pipeline.io.map_yaml import OccupancyMap
+    from pipeline.progress import progress_bar
+
+    path, roles, offsets = Path(path), roles or {}, offsets or {}
+    rec = Recording(path, bag_name(path), tf=TfBuffer(tf_max_gap, tolerance))
+    with open_reader(path) as reader:
+        rec.topics = topics = choose_topics(path, reader.connections, roles)
+        if "camera" not in topics and "scan" not in topics:
+            _fail(path, None, "has no camera (sensor_msgs/Image or CompressedImage) and no LaserScan topic",
+                  "record the camera and the laser; `siteloc ingest-bag --list` shows what the bag holds")
+        if "camera" in topics and "camera_info" not in topics:
+            _fail(path, topics["camera"], "has images but no sensor_msgs/CameraInfo topic",
+                  "record the camera's camera_info topic (it gives the intrinsics)")
+        wanted = {t: r for r, t in topics.items()}
+        conns = [c for c in reader.connections if c.topic in wanted]
+        counts = {t: 0 for t in wanted}
+        last_stamp: dict[str, float] = {}
+        scans, scan_stamps, odom = [], [], []
+        first_info: tuple[int, Intrinsics] | None = None
+        total = sum(c.msgcount for c in conns)
+        msgs = reader.messages(connections=conns)
+        for conn, _, raw in progress_bar(msgs, total=total, desc=f"reading {rec.name}", unit="msg",
+                                         enabled=progress, leave=False):
+            topic, role = conn.topic, wanted[conn.topic]
+            index = counts[topic]
+            counts[topic] += 1
+            try:
+                msg = reader.deserialize(raw, conn.msgtype)
+            except Exception as exc:
+                _fail(path, topic, f"cannot be decoded: {exc}", "the recording is damaged; re-record it", index)
+            if role in ("tf", "tf_static"):
+                for tr in msg.transforms:
+                    t, q = tr.transform.translation, tr.transform.rotation
+                    err = rec.tf.add(tr.header.frame_id, tr.child_frame_id, stamp_of(tr),
+                                     (t.x, t.y, t.z), (q.x, q.y, q.z, q.w), static=role == "tf_static")
+                    if err:
+                        _fail(path, topic, err, "the tf tree must be a tree: one parent per frame", index)
+                continue
+            if role == "map":
+                if rec.grid is None:
+                    info = msg.info
+                    q = info.origin.orientation
+                    yaw = float(np.arctan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z)))
+                    grid = np.asarray(msg.data, dtype=np.int8).reshape(info.height, info.width)
+                    grid = np.where((grid > 0) & (grid < 100), np.int8(-1), grid).astype(np.int8)  # trinary
+                    # resolution is float32 in the message: 0.05 arrives as 0.0500000007; micrometres are plenty
+                    rec.grid = OccupancyMap(grid, round(float(info.resolution), 6), float(info.origin.position.x),
+                                            float(info.origin.position.y), yaw)
+                continue
+            stamp = stamp_of(msg) + offsets.get(role, 0.0)
+            prev = last_stamp.get(topic)
+            if prev is not None and stamp < prev - 1e-6:
+                _fail(path, topic, f"stamps out of order: {stamp:.6f} s after {prev:.6f} s",
+                      "sensor clocks jumped back; re-record, or cut the recording at the jump (ros2 bag convert "
+                      "with a time range)", index)
+            if prev is not None and abs(stamp - prev) <= 1e-6:
+                rec.dropped.append({"topic": topic, "index": index, "stamp": stamp, "reason": "duplicate stamp"})
+                continue
+            last_stamp[topic] = stamp
+            if role == "odom":
+                p, q = msg.pose.pose.position, msg.pose.pose.orientation
+                rec.odom_frame = rec.odom_frame or msg.header.frame_id.lstrip("/")
+                rec.base_frame = rec.base_frame or msg.child_frame_id.lstrip("/")
+                odom.append((stamp, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)))
+            elif role == "camera_info":
+                k = _intrinsics(path, topic, index, msg)
+                if first_info is None:
+                    first_info = (index, k)
+                    rec.intrinsics = k
+                elif k != first_info[1]:
+                    _fail(path, topic, f"intrinsics change: {k} after {first_info[1]} (message {first_info[0]})",
+                          "one calibration per recording: split the bag where the camera was recalibrated", index)
+            elif role == "camera":
+                data, fmt = _image_bytes(path, topic, index, msg, conn.msgtype)
+                rec.camera_frame = rec.camera_frame or msg.header.frame_id.lstrip("/")
+                rec.frames.append((stamp, index, data, fmt))
+            elif role == "scan":
+                n = len(msg.ranges)
+                geo = {"angle_min": float(msg.angle_min), "angle_increment": float(msg.angle_increment),
+                       "beams": n, "range_max": float(msg.range_max)}
+                if rec.laser is None:
+                    if n < 2 or msg.angle_increment <= 0:
+                        _fail(path, topic, f"{n} beams with angle_increment {msg.angle_increment}",
+                              "siteloc needs counter-clockwise scans of at least 2 beams", index)
+                    rec.laser, rec.laser_frame = geo, msg.header.frame_id.lstrip("/")
+                elif geo["beams"] != rec.laser["beams"] or not np.isclose(
+                        geo["angle_min"], rec.laser["angle_min"], atol=1e-6):
+                    _fail(path, topic, f"scan geometry changes: {geo} after {rec.laser}",
+                          "one laser configuration per recording", index)
+                scans.append(np.asarray(msg.ranges, dtype=np.float32))
+                scan_stamps.append(stamp)
+    rec.messages = sum(counts.values())
+    if scans:
+        rec.ranges, rec.scan_stamps = np.stack(scans), np.asarray(scan_stamps)
+    if odom and rec.base_frame not in rec.tf.edges:  # odometry only on /odom, not in tf: it is the tf edge
+        for stamp, xyz, quat in odom:
+            rec.tf.add(rec.odom_frame, rec.base_frame, stamp, xyz, quat, static=False)
+    if rec.frames and rec.intrinsics is not None:
+        _check_frame_sizes(path, topics["camera"], rec)
+    return rec
+
+
+def _check_frame_sizes(path: Path, topic: str, rec: Recording) -> None:
+    from PIL import Image
+
+    k = rec.intrinsics
+    for _, index, data, _ in rec.frames:
+        with Image.open(io.BytesIO(data)) as im:
+            size = im.size
+        if size != (k.width, k.height):
+            _fail(path, topic, f"image is {size[0]}x{size[1]}, CameraInfo says {k.width}x{k.height}",
+                  "record the CameraInfo that belongs to this image topic", index)
