@@ -163,8 +163,13 @@ def _boxes_table(v: ValidatedSite):
 
 
 def _run_table(run: CaptureRun, site: Site):
+    return run_table(run, site.laser, site.name)
+
+
+def run_table(run: CaptureRun, laser, site_name: str):
+    """The `runs` table of one run; ranges past the laser's range_max (or non-finite) become range_max."""
     n = len(run.t)
-    ranges = np.where(np.isfinite(run.ranges), np.minimum(run.ranges, site.laser.range_max), site.laser.range_max)
+    ranges = np.where(np.isfinite(run.ranges), np.minimum(run.ranges, laser.range_max), laser.range_max)
     gt = [None if np.isnan(v) else float(v) for v in run.gt.ravel()]
     return tables.to_table(
         "runs",
@@ -179,13 +184,13 @@ def _run_table(run: CaptureRun, site: Site):
             "gt_y": gt[1::3],
             "gt_theta": gt[2::3],
             "ranges": list(ranges.astype(np.float32)),
-            "angle_min": [site.laser.angle_min] * n,
-            "angle_increment": [site.laser.angle_increment] * n,
-            "range_max": [site.laser.range_max] * n,
+            "angle_min": [laser.angle_min] * n,
+            "angle_increment": [laser.angle_increment] * n,
+            "range_max": [laser.range_max] * n,
             "image_id": run.image,
             "kidnapped": run.kidnapped,
         },
-        metadata={"site": site.name, "odometry": "recorded"},
+        metadata={"site": site_name, "odometry": "recorded"},
     )
 
 

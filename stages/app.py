@@ -6,6 +6,7 @@ import typer
 
 from stages import (
     bag,
+    colmap,
     config_cmd,
     demo,
     evaluate,
@@ -40,6 +41,8 @@ app = typer.Typer(
 app.command("ingest", help=help_text(ingest.HELP))(ingest.ingest)
 app.command("ingest-bag", help=help_text(bag.INGEST_HELP))(bag.ingest_bag)
 app.command("export-bag", help=help_text(bag.EXPORT_HELP))(bag.export_bag)
+app.command("ingest-colmap", help=help_text(colmap.INGEST_HELP))(colmap.ingest_colmap)
+app.command("export-colmap", help=help_text(colmap.EXPORT_HELP))(colmap.export_colmap)
 app.command("ingest-log", help=help_text(ingest_log.HELP))(ingest_log.ingest_log)
 app.command("synth", help=help_text(synth.HELP))(synth.synth)
 app.command("train-detector", help=help_text(train_detector.HELP))(train_detector.train_detector)

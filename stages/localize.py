@@ -38,7 +38,16 @@ Writes into --out: estimates.parquet (per step: pose, covariance, state, particl
 ms per update; a summary over trials), plots/ (error and particles per step, the trajectory and particles
 on the map, error CDF) and config.yaml.
 
+--bag replays one ROS recording (ROS 1 .bag, ROS 2 folder, .mcap / .db3) as the robot would feed the runtime:
+a step per scan with the odometry and, as ground truth when tf has it, map -> base_link at the scan's
+stamp, and the camera frame nearest in time (what `siteloc ingest-bag` makes of it). --write-bag OUT.mcap
+writes the estimates as geometry_msgs/PoseWithCovarianceStamped on /siteloc/pose and the map -> odom
+transform on /tf, stamped like the scans, to play beside the recording in RViz or Foxglove.
+
 Example: siteloc localize data/carmen/intel-corrected --out data/localize/intel --init uniform --trials 10
+
+Example: siteloc localize --bag bags/query_00 --bundle bundles/office-v1 --out data/localize/bag
+--write-bag data/localize/bag/poses.mcap
 """
 
 
@@ -52,8 +61,15 @@ class Init(StrEnum):
 
 
 def localize(
-    data: Annotated[Path, typer.Argument(help="Dataset directory (map.yaml + runs/).", show_default=False)],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)],
+    data: Annotated[Path | None, typer.Argument(help="Dataset directory (map.yaml + runs/); not with --bag.",
+                                                show_default=False)] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Output directory.", show_default=False)] = None,
+    bag: Annotated[Path | None, typer.Option("--bag", help="Replay one ROS recording instead of DATA (see above).",
+                                             show_default=False)] = None,
+    write_bag: Annotated[Path | None, typer.Option("--write-bag", help="With --bag: write the estimates to this "
+                                                   "recording (.mcap, or .bag for ROS 1).", show_default=False)] = None,
+    bag_map: Annotated[Path | None, typer.Option("--map", help="With --bag: map.yaml when the recording has no "
+                                                 "/map.", show_default=False)] = None,
     run: Annotated[
         list[str] | None, typer.Option("--run", "-r", help="Replay only this run (repeatable) \\[default: all].")
     ] = None,
@@ -79,10 +95,24 @@ def localize(
         if bundle is not None and init == Init.uniform:
             init = Init.retrieval
         init = Init(init).value  # the pipeline takes a plain string
+        from pipeline.errors import ConfigError
+
+        if out is None:
+            raise ConfigError("--out is required")
+        if (data is None) == (bag is None):
+            raise ConfigError("give either DATA (a dataset directory) or --bag (a recording), not both or neither")
+        if write_bag is not None and bag is None:
+            raise ConfigError("--write-bag goes with --bag")
         cfg = load(config, set_)
-        result = run_localize(cfg, inputs={"data": data}, outputs={"out": out}, runs=run, init=init, trials=trials,
-                              kidnap_at=kidnap_at, kidnap_min_jump_m=kidnap_min_jump, bundle=bundle, force=force,
-                              progress=sys.stderr.isatty())
+        kw = dict(init=init, trials=trials, kidnap_at=kidnap_at, kidnap_min_jump_m=kidnap_min_jump, force=force)
+        if bag is not None:
+            from pipeline.rosbag.replay import run_localize_bag
+
+            result = run_localize_bag(cfg, inputs={"bag": bag, "bundle": bundle, "map": bag_map},
+                                      outputs={"out": out}, write_bag=write_bag, progress=sys.stderr.isatty(), **kw)
+        else:
+            result = run_localize(cfg, inputs={"data": data}, outputs={"out": out}, runs=run, bundle=bundle,
+                                  progress=sys.stderr.isatty(), **kw)
         doc = json.loads((result / "metrics.json").read_text())
         from rich.console import Console
         from rich.table import Table

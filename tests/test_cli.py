@@ -130,7 +130,8 @@ SECTIONS = {"ingest": "ingest", "ingest-log": "ingest_log", "train-detector": "d
             "evaluate-detector": "detector", "extract": "retrieval", "build-index": "retrieval",
             "query": "retrieval", "evaluate-retrieval": "retrieval", "frame-features": "sequence",
             "train-sequence": "sequence", "export": "export", "localize": "filter", "evaluate": "evaluate",
-            "prior": "prior"}
+            "prior": "prior", "ingest-bag": "ingest", "export-bag": "ingest", "ingest-colmap": "ingest",
+            "export-colmap": "ingest"}
 
 
 @pytest.mark.parametrize("argv", [a for a in commands() if any("--set" in p.opts for p in command(a).params)],
@@ -161,8 +162,8 @@ def test_set_example_names_a_key_the_command_reads(argv):
 def test_help_does_not_import_heavy_libraries():
     code = (
         "import sys; from stages.app import app; "
-        "heavy = [m for m in ('torch', 'torchvision', 'cv2', 'pycolmap', 'sklearn', 'matplotlib', 'pyarrow') "
-        "if m in sys.modules]; print(','.join(heavy))"
+        "heavy = [m for m in ('torch', 'torchvision', 'cv2', 'pycolmap', 'sklearn', 'matplotlib', 'pyarrow', "
+        "'rosbags') if m in sys.modules]; print(','.join(heavy))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == "", f"importing the CLI pulled in {out}"

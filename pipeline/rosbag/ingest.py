@@ -151,7 +151,8 @@ def _extract(rec: Recording, site_offsets, opts: BagOptions, tol_deg: float, use
                 image[step] = fi
             dropped["frames_without_scan"] = len(fs) - len(best)
             dropped["sync_tolerance_s"] = opts.sync_tolerance_s
-        drive.run = {"t": t - t[0] if len(t) else t, "odom": odom_p, "gt": ref_p, "ranges": rec.ranges[idx],
+        drive.run = {"t": t - t[0] if len(t) else t, "t0": float(t[0]) if len(t) else 0.0, "odom": odom_p,
+                     "gt": ref_p, "ranges": rec.ranges[idx],
                      "image": image, "kidnapped": _kidnapped(odom_p, ref_p, opts)}
         dropped["tf_gaps"] = _gaps(rec, m, base, np.r_[t, [f[0] for f in rec.frames]])
     drive.report["dropped"] = dropped
@@ -176,7 +177,7 @@ def _kidnapped(odom: np.ndarray, ref: np.ndarray, opts: BagOptions) -> list[bool
 
 
 def _site(recs: list[Recording], drives: list[Drive], name: str, opts: BagOptions):
-    from pipeline.io.site import Camera, Extrinsic, Extrinsics, Laser, LaserMount, Site
+    from pipeline.io.site import Camera, Extrinsic, Extrinsics, Laser, Site
 
     with_cam = [r for r in recs if r.intrinsics is not None]
     if not with_cam:
@@ -198,23 +199,28 @@ def _site(recs: list[Recording], drives: list[Drive], name: str, opts: BagOption
                 f"{r.path} {r.topics['scan']}", f"{r.laser['beams']} beams, {with_laser[0].path} has "
                 f"{with_laser[0].laser['beams']}", fix="ingest recordings of one laser configuration together")])
     if with_laser:
-        r = with_laser[0]
-        g = r.laser
-        _, _, base = _frames(r, opts)
-        mount = _mount(r, base, r.laser_frame, "laser")
-        mx, my, myaw = mount.floor_pose(0)[0]
-        laser = Laser(angle_min_deg=round(math.degrees(g["angle_min"]), 4),
-                      angle_max_deg=round(math.degrees(g["angle_min"] + (g["beams"] - 1) * g["angle_increment"]), 4),
-                      beams=g["beams"], range_max=g["range_max"],
-                      mount=LaserMount(x=round(mx, 6), y=round(my, 6), yaw_deg=round(math.degrees(myaw), 6)))
-        ext["base_from_laser"] = Extrinsic(xyz=tuple(np.round(mount.xyz[0], 6)),
-                                           quat_xyzw=tuple(np.round(mount.rot.as_quat()[0], 9)))
+        laser, ext["base_from_laser"] = laser_of(with_laser[0], opts)
     r = with_cam[0]
     _, _, base = _frames(r, opts)
     cm = _mount(r, base, r.camera_frame, "camera")
     ext["base_from_camera"] = Extrinsic(xyz=tuple(np.round(cm.xyz[0], 6)),
                                         quat_xyzw=tuple(np.round(cm.rot.as_quat()[0], 9)))
     return Site(name=name, camera=camera, laser=laser, extrinsics=Extrinsics(**ext))
+
+
+def laser_of(r: Recording, opts: BagOptions):
+    """site.yaml's laser (geometry of the first scan, 2-D mount) and its 3-D extrinsic, from a recording."""
+    from pipeline.io.site import Extrinsic, Laser, LaserMount
+
+    g = r.laser
+    _, _, base = _frames(r, opts)
+    mount = _mount(r, base, r.laser_frame, "laser")
+    mx, my, myaw = mount.floor_pose(0)[0]
+    laser = Laser(angle_min_deg=round(math.degrees(g["angle_min"]), 4),
+                  angle_max_deg=round(math.degrees(g["angle_min"] + (g["beams"] - 1) * g["angle_increment"]), 4),
+                  beams=g["beams"], range_max=g["range_max"],
+                  mount=LaserMount(x=round(mx, 6), y=round(my, 6), yaw_deg=round(math.degrees(myaw), 6)))
+    return laser, Extrinsic(xyz=tuple(np.round(mount.xyz[0], 6)), quat_xyzw=tuple(np.round(mount.rot.as_quat()[0], 9)))
 
 
 def _map(recs: list[Recording], map_yaml: Path | None):
