@@ -32,7 +32,7 @@ def project_root(start: Path | None = None) -> Path:
     raise DemoError(f"{here}: not inside a DVC project (no dvc.yaml and .dvc/ here or above); run the demo "
                     f"from a clone of siteloc, e.g. cd {REPO_ROOT}")
 PARAMS = Path("configs") / "params.yaml"
-REPORT_FILES = ("synth_report.json", "report.json", "metrics.json")
+REPORT_FILES = ("synth_report.json", "report.json", "metrics.json", "bag_report.json", "export_report.json")
 
 
 class DemoError(SitelocError):

@@ -71,7 +71,8 @@ def test_the_dvc_pipeline_runs_is_recorded_and_reruns_only_what_changed(tmp_path
     assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
     summary = json.loads((project / "data" / "demo-summary.json").read_text())
     stages = set(summary) - {"total"}
-    assert len(stages) == 20 and not any(summary[s]["reused"] for s in stages)
+    assert len(stages) == 22 and not any(summary[s]["reused"] for s in stages)
+    assert summary["ingest_bag"]["report"]["stops"] == summary["synth"]["report"]["stops"]  # the bag round trip
     assert summary["ingest_log@intel-corrected"]["report"]["scans"] == 20
     assert summary["synth"]["report"]["capture_images"] == 6 * summary["synth"]["report"]["stops"]
     bundle = project / "bundles" / "tiny-0.1.0"
