@@ -77,8 +77,27 @@ def open_reader(path: Path) -> Iterator:
             reader.close()
 
 
+def messages(reader, path: Path, connections=None) -> Iterator:
+    """reader.messages(connections), with storage that breaks off while reading (a truncated or damaged
+    file that still opened) raised as an InputError naming the file, not the storage library's error."""
+    it = iter(reader.messages() if connections is None else reader.messages(connections=connections))
+    n = 0
+    while True:
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        except Exception as exc:  # apsw / sqlite3 / mcap / lz4 errors: all mean the same to the user
+            raise InputError(f"{path}: cannot read the recording", [
+                Problem(str(path), f"unreadable or truncated after {n} messages: {type(exc).__name__}: {exc}",
+                        fix="check the file is complete (re-copy it; `ros2 bag reindex` / `rosbag reindex` "
+                            "repair an unclosed bag)")]) from None
+        n += 1
+        yield item
+
+
 class BagWriter:
-    """Writes one recording; topics are added once, messages in any order (the formats index by time)."""
+    """Writes one recording; topics are added once, messages in any order: they are written sorted by time."""
 
     def __init__(self, path: Path, fmt: str):
         if fmt not in FORMATS:
@@ -87,6 +106,7 @@ class BagWriter:
         self.msgs = Messages.for_format(fmt)
         self.conns: dict[str, object] = {}
         self.counts: dict[str, int] = {}
+        self._pending: list[tuple[int, int, str, bytes]] = []
 
     def __enter__(self) -> BagWriter:
         if self.fmt == "bag":
@@ -103,7 +123,15 @@ class BagWriter:
         return self
 
     def __exit__(self, *exc) -> None:
-        self.writer.close()
+        try:
+            if exc[0] is None:
+                # In receive-time order, as a recorder writes: a reader going through the recording in time then
+                # meets each (compressed) chunk once.
+                for t, _, topic, data in sorted(self._pending, key=lambda m: (m[0], m[1])):
+                    self.writer.write(self.conns[topic], t, data)
+        finally:
+            self._pending = []
+            self.writer.close()
 
     def topic(self, name: str, typename: str, *, latched: bool = False) -> None:
         if self.fmt == "bag":
@@ -119,5 +147,5 @@ class BagWriter:
     def write(self, topic: str, bag_time: float, msg) -> None:
         from pipeline.rosbag.messages import ns
 
-        self.writer.write(self.conns[topic], ns(bag_time), self.msgs.serialize(msg))
+        self._pending.append((ns(bag_time), len(self._pending), topic, self.msgs.serialize(msg)))
         self.counts[topic] += 1

@@ -15,7 +15,7 @@ import io
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -64,7 +64,8 @@ def _frames(rec: Recording, opts: BagOptions) -> tuple[str, str, str]:
     for role, f in (("base", base), ("odom", odom), ("map", m)):
         if f not in known:
             raise InputError(f"{rec.path}: no frame '{f}' in tf", [Problem(
-                f"{rec.path} /tf", f"the {role} frame '{f}' never appears (frames: {sorted(known)})", fix=fix)])
+                f"{rec.path} /tf", f"the {role} frame '{f}' never appears, so '{m}' and '{base}' are not connected "
+                f"(frames: {sorted(known)})", fix=fix)])
     if rec.tf.path(m, base) is None:
         raise InputError(f"{rec.path}: tf has no map -> base_link", [Problem(
             f"{rec.path} /tf", f"'{m}' and '{base}' are not connected (tree: {_tree(rec)})", fix=fix)])
@@ -291,7 +292,15 @@ def _annotations(src: Path, tmp: Path) -> dict:
     file they name (beside the COCO file), so boxes drawn on an earlier extraction carry over."""
     import hashlib
 
-    doc = json.loads(Path(src).read_text())
+    try:
+        doc = json.loads(Path(src).read_text())
+    except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError
+        raise InputError(f"{src}: annotations are not JSON", [Problem(str(src), str(exc),
+                                                                     fix="pass a COCO annotations.json")]) from None
+    if not isinstance(doc, dict):
+        raise InputError(f"{src}: annotations are not a COCO file", [Problem(
+            str(src), "top level must be an object with 'images' and 'annotations'",
+            fix="pass a COCO annotations.json")])
     ours = {}
     for p in sorted((tmp / "images").glob("stop*")):
         ours[hashlib.sha256(p.read_bytes()).hexdigest()] = p.relative_to(tmp).as_posix()
@@ -347,6 +356,10 @@ def run_ingest_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Path]
 
     opts = options or BagOptions()
     out = Path(outputs["out"])
+    ann_path = inputs.get("annotations")
+    if ann_path is not None and not Path(ann_path).is_file():
+        raise InputError(f"{ann_path}: annotations not found", [Problem(
+            str(ann_path), "file is missing", fix="pass the COCO file of the stop images, or leave --annotations out")])
     bags = find_bags(inputs["bags"])
     unknown = [n for n in opts.stops_from if n not in {p.stem if p.is_file() else p.name for p in bags}]
     if unknown:
@@ -400,5 +413,12 @@ def run_ingest_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Path]
         icfg = cfg.ingest.model_copy(update={
             "position_tolerance_m": max(cfg.ingest.position_tolerance_m, spread + 0.01),
             "heading_tolerance_deg": max(cfg.ingest.heading_tolerance_deg, head + 1.0)})
-        validate_site_dir(tmp, icfg, progress=False)  # what `siteloc ingest` will check, before anything is kept
+        try:  # what `siteloc ingest` will check, before anything is kept
+            validate_site_dir(tmp, icfg, progress=False)
+        except InputError as exc:  # name the output, not the temporary directory that is about to go
+            def named(text: str) -> str:
+                return text.replace(str(tmp), str(out))
+
+            raise InputError(named(exc.summary), [replace(p, file=named(p.file), message=named(p.message))
+                                                  for p in exc.problems]) from None
     return out

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.rosbag.bagfile import bag_name, open_reader
+from pipeline.rosbag.bagfile import bag_name, messages, open_reader
 from pipeline.rosbag.read import ROLE_TYPES
 
 
@@ -15,7 +15,7 @@ def inventory(path: Path) -> dict:
     path = Path(path)
     with open_reader(path) as reader:
         stamps: dict[str, list[int]] = {c.topic: [] for c in reader.connections}
-        for conn, t, _ in reader.messages():
+        for conn, t, _ in messages(reader, path):
             stamps[conn.topic].append(t)
         types = {c.topic: c.msgtype for c in reader.connections}
         start, end = reader.start_time, reader.end_time

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import InputError, Problem
-from pipeline.rosbag.bagfile import bag_name, open_reader
+from pipeline.rosbag.bagfile import bag_name, messages, open_reader
 from pipeline.rosbag.messages import CAMERA_INFO, COMPRESSED, GRID, IMAGE, ODOMETRY, SCAN, TF, stamp_of
 from pipeline.rosbag.messages import field as msg_field
 from pipeline.rosbag.transforms import TfBuffer
@@ -98,8 +98,9 @@ def _image_bytes(path: Path, topic: str, index: int, msg, typename: str) -> tupl
         data = bytes(msg.data)
         fmt = "jpeg" if data[:3] == b"\xff\xd8\xff" else "png" if data[:8] == b"\x89PNG\r\n\x1a\n" else None
         if fmt is None:
-            _fail(path, topic, f"compressed image format '{msg.format}' is not supported",
-                  f"siteloc reads {', '.join(ENCODINGS)} (re-encode, e.g. with image_transport republish)", index)
+            _fail(path, topic, f"compressed image data is neither JPEG nor PNG (format '{msg.format}', first bytes "
+                  f"{data[:8].hex()})", f"siteloc reads {', '.join(ENCODINGS)} (re-encode, e.g. with image_transport "
+                  "republish)", index)
         return data, fmt
     enc = msg.encoding.lower()
     if enc not in ("rgb8", "bgr8", "mono8"):
@@ -154,7 +155,7 @@ def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dic
         scans, scan_stamps, odom = [], [], []
         first_info: tuple[int, Intrinsics] | None = None
         total = sum(c.msgcount for c in conns)
-        msgs = reader.messages(connections=conns)
+        msgs = messages(reader, path, conns)
         for conn, _, raw in progress_bar(msgs, total=total, desc=f"reading {rec.name}", unit="msg",
                                          enabled=progress, leave=False):
             topic, role = conn.topic, wanted[conn.topic]
@@ -240,9 +241,13 @@ def _check_frame_sizes(path: Path, topic: str, rec: Recording) -> None:
     from PIL import Image
 
     k = rec.intrinsics
-    for _, index, data, _ in rec.frames:
-        with Image.open(io.BytesIO(data)) as im:
-            size = im.size
+    for _, index, data, fmt in rec.frames:
+        try:
+            with Image.open(io.BytesIO(data)) as im:
+                size = im.size
+        except Exception as exc:  # PIL raises UnidentifiedImageError, SyntaxError, OSError for damaged data
+            _fail(path, topic, f"{fmt.upper()} image data cannot be decoded ({type(exc).__name__})",
+                  "the message is damaged; re-record it", index)
         if size != (k.width, k.height):
             _fail(path, topic, f"image is {size[0]}x{size[1]}, CameraInfo says {k.width}x{k.height}",
                   "record the CameraInfo that belongs to this image topic", index)

@@ -39,7 +39,7 @@ class Transforms:
 def from_floor_pose(poses: np.ndarray, z: float = 0.0) -> Transforms:
     """SE(2) poses (N, 3) as SE(3) transforms at height z."""
     poses = np.atleast_2d(np.asarray(poses, dtype=np.float64))
-    rot = Rotation.from_euler("z", poses[:, 2])
+    rot = Rotation.from_euler("z", poses[:, 2:3])  # (N, 1): N rotations (scipy 1.17 rejects a 1-D array here)
     xyz = np.column_stack([poses[:, :2], np.full(len(poses), z)])
     return Transforms(rot, xyz, np.ones(len(poses), bool))
 
