@@ -71,13 +71,36 @@ def interpolate_poses(t: np.ndarray, poses: np.ndarray, at: np.ndarray) -> np.nd
                             wrap_angle(np.interp(at, t, th))])
 
 
+def mounts(site, camera_height: float, laser_height: float) -> dict[str, tuple[tuple, tuple]]:
+    """base_from_camera (optical frame) and base_from_laser as (xyz, quat): site.yaml's extrinsics when it
+    has them (a site that came from a recording), else the camera at the base's centre looking along x
+    at `camera_height` and the laser at its 2-D mount at `laser_height`."""
+    ext = site.extrinsics
+    m = site.laser.mount
+    out = {"camera": ((0.0, 0.0, camera_height), _quat(OPTICAL)),
+           "laser": ((m.x, m.y, laser_height), yaw_quat(math.radians(m.yaw_deg)))}
+    if ext is not None and ext.base_from_camera is not None:
+        out["camera"] = (ext.base_from_camera.xyz, ext.base_from_camera.quat_xyzw)
+    if ext is not None and ext.base_from_laser is not None:
+        out["laser"] = (ext.base_from_laser.xyz, ext.base_from_laser.quat_xyzw)
+    return out
+
+
+def camera_on_floor(site, camera_height: float) -> np.ndarray:
+    """(1, 3) base_from_camera on the floor: the optical axis' heading and the camera's x, y on the base."""
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.rosbag.transforms import Transforms
+
+    xyz, quat = mounts(site, camera_height, 0.0)["camera"]
+    return Transforms(Rotation.from_quat([quat]), np.array([xyz], float), np.ones(1, bool)).floor_pose(2)
+
+
 def _static(w: BagWriter, stamp: float, site, camera_height: float, laser_height: float) -> None:
-    m, msgs = site.laser.mount, w.msgs
-    base_from_laser = msgs.transform_stamped(stamp, FRAMES["base"], FRAMES["laser"], (m.x, m.y, laser_height),
-                                             yaw_quat(math.radians(m.yaw_deg)))
-    base_from_cam = msgs.transform_stamped(stamp, FRAMES["base"], FRAMES["camera"], (0.0, 0.0, camera_height),
-                                           _quat(OPTICAL))
-    w.write(TOPICS["tf_static"], stamp + LATENCY["tf"], msgs.tf([base_from_laser, base_from_cam]))
+    msgs, m = w.msgs, mounts(site, camera_height, laser_height)
+    w.write(TOPICS["tf_static"], stamp + LATENCY["tf"], msgs.tf([
+        msgs.transform_stamped(stamp, FRAMES["base"], FRAMES["laser"], *m["laser"]),
+        msgs.transform_stamped(stamp, FRAMES["base"], FRAMES["camera"], *m["camera"])]))
 
 
 def _map(w: BagWriter, stamp: float, occ) -> None:
@@ -118,8 +141,10 @@ def _topics(w: BagWriter, scans: bool) -> None:
         w.topic(TOPICS["scan"], SCAN)
 
 
-def capture_session(v, seed: int) -> tuple[np.ndarray, np.ndarray, list[tuple[float, str]]]:
-    """Times (N,), map_from_base poses (N, 3) at CAPTURE_RATE and (stamp offset, image) of every view."""
+def capture_session(v, camera_height: float = 1.2) -> tuple[np.ndarray, np.ndarray, list[tuple[float, str]]]:
+    """Times (N,), map_from_base poses (N, 3) at CAPTURE_RATE and (stamp offset, image) of every view.
+
+    The rows give map_from_cam; the base stands where that puts it through the camera's mount."""
     from pipeline.sitegen.routes import RoutePlanner
 
     dt = 1.0 / CAPTURE_RATE
@@ -127,11 +152,13 @@ def capture_session(v, seed: int) -> tuple[np.ndarray, np.ndarray, list[tuple[fl
     for r in v.rows:
         by_stop.setdefault(r.stop_id, []).append(r)
     planner = RoutePlanner(v.occ_map, clearance=0.15)
+    cam_from_base = _inverse(camera_on_floor(v.site, camera_height))
     poses: list[np.ndarray] = []
     shots: list[tuple[int, str]] = []
     for stop_rows in by_stop.values():
         views = sorted(stop_rows, key=lambda r: r.view)
-        here = np.array([views[0].x, views[0].y, views[0].theta])
+        base_of = {r.image: _compose(np.array([[r.x, r.y, r.theta]]), cam_from_base)[0] for r in views}
+        here = base_of[views[0].image]
         if poses:
             last = poses[-1]
             try:
@@ -149,7 +176,7 @@ def capture_session(v, seed: int) -> tuple[np.ndarray, np.ndarray, list[tuple[fl
                 poses += [np.array([x, y, h]) for (x, y), h in zip(xy, direction, strict=True)]
         current = poses[-1] if poses else here
         for r in views:
-            target = np.array([r.x, r.y, r.theta])
+            target = base_of[r.image]
             d = wrap_angle(target[2] - current[2])
             steps = max(2, int(math.ceil(abs(d) / math.radians(6.0))))  # 60 deg/s
             for f in np.linspace(0, 1, steps)[1:]:
@@ -171,7 +198,7 @@ def write_capture_bag(path: Path, v, fmt: str, start: float, seed: int, camera_h
                       laser_height: float) -> dict:
     from pipeline.io.odometry import synthesise_odometry
 
-    times, gt, shots = capture_session(v, seed)
+    times, gt, shots = capture_session(v, camera_height)
     odom = synthesise_odometry(gt, OdometryNoise(), seed)
     with BagWriter(path, fmt) as w:
         _topics(w, scans=False)

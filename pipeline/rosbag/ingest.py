@@ -98,6 +98,21 @@ def _gaps(rec: Recording, m: str, base: str, stamps: np.ndarray) -> list[dict]:
     return out
 
 
+def stream_gaps(rec: Recording, factor: float = 2.5, min_gap: float = 1.0) -> list[dict]:
+    """Silences of the laser (the runs' clock): intervals longer than `factor` typical periods and `min_gap`
+    seconds, where a sensor or the recorder stalled or the clock jumped forward. (The camera is not
+    checked: a capture camera may fire only at the views.)"""
+    stamps = rec.scan_stamps
+    if stamps is None or len(stamps) < 3:
+        return []
+    d = np.diff(stamps)
+    period = float(np.median(d))
+    limit = max(factor * period, min_gap)
+    return [{"topic": rec.topics.get("scan", "scan"), "from_s": round(float(stamps[i]) - _t0(rec), 3),
+             "to_s": round(float(stamps[i + 1]) - _t0(rec), 3), "gap_s": round(float(d[i]), 3),
+             "typical_period_s": round(period, 3)} for i in np.nonzero(d > limit)[0]]
+
+
 def _t0(rec: Recording) -> float:
     firsts = [f[0] for f in rec.frames[:1]] + ([float(rec.scan_stamps[0])] if rec.scan_stamps is not None else [])
     return min(firsts) if firsts else 0.0
@@ -156,6 +171,7 @@ def _extract(rec: Recording, site_offsets, opts: BagOptions, tol_deg: float, use
                      "gt": ref_p, "ranges": rec.ranges[idx],
                      "image": image, "kidnapped": _kidnapped(odom_p, ref_p, opts)}
         dropped["tf_gaps"] = _gaps(rec, m, base, np.r_[t, [f[0] for f in rec.frames]])
+    dropped["stream_gaps"] = stream_gaps(rec)
     drive.report["dropped"] = dropped
     return drive
 
@@ -335,6 +351,9 @@ def _report_md(rep: dict) -> str:
         lines.append(f"| {name} | {r['frames']} | {r['scans']} | {r['stops']} | {len(r['incomplete_stops'])} | "
                      f"{drop} |")
     for name, r in rep["recordings"].items():
+        for g in r["dropped"].get("stream_gaps", []):
+            lines.append(f"\n- {name}: {g['topic']} is silent from {g['from_s']} s to {g['to_s']} s ({g['gap_s']} s, "
+                         f"typically {g['typical_period_s']} s between messages): a stall or a clock jump")
         for g in r["dropped"].get("tf_gaps", []):
             lines.append(f"\n- {name}: tf {g['edge']} has no message from {g['from_s']} s to {g['to_s']} s "
                          f"({g['gap_s']} s); {g['stamps_inside']} scans and frames in it have no pose")

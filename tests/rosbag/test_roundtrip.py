@@ -92,3 +92,31 @@ def test_export_is_reproducible(tmp_path):
     b = run_export_bag(cfg, inputs={"site": site}, outputs={"out": tmp_path / "b"}, fmt="bag", progress=False)
     for name in ("capture.bag", "query_a.bag"):
         assert (a / name).read_bytes() == (b / name).read_bytes()
+
+
+def test_export_keeps_the_mounts_of_a_site_that_came_from_a_recording(tmp_path):
+    """site.yaml's extrinsics (as ingest-bag writes them) go back into /tf_static unchanged."""
+    import yaml
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.io.site import Site
+    from pipeline.rosbag.export import OPTICAL, camera_on_floor
+
+    cfg = load_config("demo")
+    site = write_capture_site(tmp_path / "site")
+    doc = yaml.safe_load((site / "site.yaml").read_text())
+    doc["laser"]["mount"] = {"x": 0.1, "y": 0.0, "yaw_deg": 0.0}
+    optical = [float(v) for v in Rotation.from_matrix(OPTICAL).as_quat()]
+    doc["extrinsics"] = {"base_from_camera": {"xyz": [0.0, 0.0, 1.55], "quat_xyzw": optical},
+                         "base_from_laser": {"xyz": [0.1, 0.0, 0.25], "quat_xyzw": [0.0, 0.0, 0.0, 1.0]}}
+    (site / "site.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    bags = run_export_bag(cfg, inputs={"site": site}, outputs={"out": tmp_path / "bags"}, progress=False)
+    back = run_ingest_bag(cfg, inputs={"bags": [bags]}, outputs={"out": tmp_path / "back"}, progress=False)
+    ext = read_site(back / "site.yaml").extrinsics
+    assert ext.base_from_camera.xyz == (0.0, 0.0, 1.55) and ext.base_from_laser.xyz == (0.1, 0.0, 0.25)
+    assert read_site(back / "site.yaml").laser.mount.x == 0.1
+    # a camera looking left from 0.2 m ahead of the base: the base stands behind and to the right of it
+    left = Rotation.from_euler("z", 90, degrees=True) * Rotation.from_matrix(OPTICAL)
+    doc["extrinsics"]["base_from_camera"] = {"xyz": [0.2, 0.0, 1.2], "quat_xyzw": [float(v) for v in left.as_quat()]}
+    floor = camera_on_floor(Site.model_validate(doc), 1.2)[0]
+    assert floor == pytest.approx([0.2, 0.0, np.pi / 2])

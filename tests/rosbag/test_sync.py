@@ -189,3 +189,34 @@ def test_duplicate_stamps_are_dropped_and_counted(tiny, tmp_path):
     assert dup.rows == base.rows
     assert np.array_equal(np.load(dup.out / "runs/query_a/scans.npy"), np.load(base.out / "runs/query_a/scans.npy"))
     assert dup.image_bytes() == base.image_bytes()
+
+
+def test_a_silence_in_the_laser_stream_is_reported(tmp_path):
+    """Scans 4 and 5 missing (1.5 s without a scan at 2 Hz): the report names the topic and the interval."""
+    import json
+
+    from pipeline.config import load_config
+    from pipeline.rosbag.ingest import run_ingest_bag
+    from tests.rosbag.bags import exported, rewrite
+
+    _, bags = exported(tmp_path)
+    n = {"scan": 0}
+
+    def drop_two_scans(topic, msg, t, w):
+        if topic == "/scan":
+            n["scan"] += 1
+            if n["scan"] in (5, 6):
+                return []
+        return [(topic, msg, t)]
+
+    src = tmp_path / "in"
+    src.mkdir()
+    rewrite(bags / "query_a", src / "query_a", drop_two_scans)
+    rewrite(bags / "capture", src / "capture", lambda topic, msg, t, w: [(topic, msg, t)])
+    out = run_ingest_bag(load_config("demo"), inputs={"bags": [src]}, outputs={"out": tmp_path / "out"},
+                         progress=False)
+    rep = json.loads((out / "bag_report.json").read_text())["recordings"]
+    assert rep["query_a"]["dropped"]["stream_gaps"] == [
+        {"topic": "/scan", "from_s": 1.5, "to_s": 3.0, "gap_s": 1.5, "typical_period_s": 0.5}]
+    assert rep["capture"]["dropped"]["stream_gaps"] == []  # no laser there
+    assert "/scan is silent from 1.5 s to 3.0 s" in (out / "bag_report.md").read_text()
