@@ -23,7 +23,7 @@ import numpy as np
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem
 from pipeline.io.atomic import atomic_dir, write_bytes_atomic, write_text_atomic
-from pipeline.rosbag.read import Recording, read_recording
+from pipeline.rosbag.read import Recording, load_frames, read_recording
 from pipeline.rosbag.stops import stops_every, turning_stops
 from pipeline.runtime.motion import wrap_angle
 
@@ -174,6 +174,14 @@ def _extract(rec: Recording, site_offsets, opts: BagOptions, tol_deg: float, use
     dropped["stream_gaps"] = stream_gaps(rec)
     drive.report["dropped"] = dropped
     return drive
+
+
+def kept_frames(d: Drive) -> set[int]:
+    """Positions in `d.rec.frames` of the frames the capture directory keeps: stop views and run frames."""
+    out = {f for s in d.stops for f in s.frames}
+    if d.run is not None:
+        out |= {f for f in d.run["image"] if f is not None}
+    return out
 
 
 def _kidnapped(odom: np.ndarray, ref: np.ndarray, opts: BagOptions) -> list[bool]:
@@ -391,6 +399,8 @@ def run_ingest_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Path]
     offsets = Rig().yaw_offsets
     tol_deg = opts.view_tolerance_deg or (15.0 if opts.stops == "every" else cfg.ingest.heading_tolerance_deg)
     drives = [_extract(r, offsets, opts, tol_deg, not opts.stops_from or r.name in opts.stops_from) for r in recs]
+    for d in drives:
+        load_frames(d.rec, kept_frames(d))
     name = opts.name or "".join(c if c.isalnum() or c in "_.-" else "_" for c in out.name) or "site"
     site = _site(recs, drives, name, opts)
     occ = _map(recs, inputs.get("map"))

@@ -5,6 +5,7 @@ nav_msgs Odometry and OccupancyGrid; /tf and /tf_static by name); `roles` overri
 (`camera=/front/image_raw`). Stamps are the messages' header stamps (measurement time), shifted by
 `offsets[role]` seconds for a sensor whose clock is known to be off. Every problem raises one InputError
 naming the topic and the message index; what is dropped (duplicate stamps) is listed in `dropped`.
+Frames are checked on the first pass but their bytes are read only for the frames kept (`load_frames`).
 """
 
 from __future__ import annotations
@@ -41,7 +42,8 @@ class Intrinsics:
 class Recording:
     path: Path
     name: str
-    frames: list[tuple[float, int, bytes, str]] = field(default_factory=list)  # stamp, index, data, jpeg|png
+    # stamp, message index, bytes (None until `load_frames`), jpeg|png
+    frames: list[tuple[float, int, bytes | None, str]] = field(default_factory=list)
     camera_frame: str | None = None
     intrinsics: Intrinsics | None = None
     scan_stamps: np.ndarray | None = None
@@ -91,7 +93,9 @@ def choose_topics(path: Path, connections, roles: dict[str, str]) -> dict[str, s
     return out
 
 
-def _image_bytes(path: Path, topic: str, index: int, msg, typename: str) -> tuple[bytes, str]:
+def _image_bytes(path: Path, topic: str, index: int, msg, typename: str,
+                 encode: bool = True) -> tuple[bytes | None, str, tuple[int, int]]:
+    """(file bytes or None without `encode`, jpeg|png, (width, height)) of an image message, checked."""
     from PIL import Image
 
     if typename == COMPRESSED:
@@ -101,7 +105,13 @@ def _image_bytes(path: Path, topic: str, index: int, msg, typename: str) -> tupl
             _fail(path, topic, f"compressed image data is neither JPEG nor PNG (format '{msg.format}', first bytes "
                   f"{data[:8].hex()})", f"siteloc reads {', '.join(ENCODINGS)} (re-encode, e.g. with image_transport "
                   "republish)", index)
-        return data, fmt
+        try:  # the header only: cheap
+            with Image.open(io.BytesIO(data)) as im:
+                size = im.size
+        except Exception as exc:  # PIL raises UnidentifiedImageError, SyntaxError, OSError for damaged data
+            _fail(path, topic, f"{fmt.upper()} image data cannot be decoded ({type(exc).__name__})",
+                  "the message is damaged; re-record it", index)
+        return (data if encode else None), fmt, size
     enc = msg.encoding.lower()
     if enc not in ("rgb8", "bgr8", "mono8"):
         _fail(path, topic, f"image encoding '{msg.encoding}' is not supported",
@@ -111,13 +121,16 @@ def _image_bytes(path: Path, topic: str, index: int, msg, typename: str) -> tupl
     if msg.step < msg.width * ch or raw.size < msg.step * msg.height:
         _fail(path, topic, f"image data has {raw.size} bytes, {msg.height} rows of step {msg.step} need more",
               "the message is damaged; re-record it", index)
+    size = (int(msg.width), int(msg.height))
+    if not encode:
+        return None, "png", size
     px = raw[: msg.step * msg.height].reshape(msg.height, msg.step)[:, : msg.width * ch]
     px = px.reshape(msg.height, msg.width, ch) if ch == 3 else px
     if enc == "bgr8":
         px = px[:, :, ::-1]
     buf = io.BytesIO()
     Image.fromarray(np.ascontiguousarray(px)).save(buf, format="PNG")
-    return buf.getvalue(), "png"
+    return buf.getvalue(), "png", size
 
 
 def _intrinsics(path: Path, topic: str, index: int, msg) -> Intrinsics:
@@ -152,7 +165,7 @@ def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dic
         conns = [c for c in reader.connections if c.topic in wanted]
         counts = {t: 0 for t in wanted}
         last_stamp: dict[str, float] = {}
-        scans, scan_stamps, odom = [], [], []
+        scans, scan_stamps, odom, sizes = [], [], [], []
         first_info: tuple[int, Intrinsics] | None = None
         total = sum(c.msgcount for c in conns)
         msgs = messages(reader, path, conns)
@@ -208,9 +221,10 @@ def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dic
                     _fail(path, topic, f"intrinsics change: {k} after {first_info[1]} (message {first_info[0]})",
                           "one calibration per recording: split the bag where the camera was recalibrated", index)
             elif role == "camera":
-                data, fmt = _image_bytes(path, topic, index, msg, conn.msgtype)
+                _, fmt, size = _image_bytes(path, topic, index, msg, conn.msgtype, encode=False)
                 rec.camera_frame = rec.camera_frame or msg.header.frame_id.lstrip("/")
-                rec.frames.append((stamp, index, data, fmt))
+                rec.frames.append((stamp, index, None, fmt))
+                sizes.append((index, size))
             elif role == "scan":
                 n = len(msg.ranges)
                 geo = {"angle_min": float(msg.angle_min), "angle_increment": float(msg.angle_increment),
@@ -233,21 +247,27 @@ def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dic
         for stamp, xyz, quat in odom:
             rec.tf.add(rec.odom_frame, rec.base_frame, stamp, xyz, quat, static=False)
     if rec.frames and rec.intrinsics is not None:
-        _check_frame_sizes(path, topics["camera"], rec)
+        k = rec.intrinsics
+        for index, size in sizes:
+            if size != (k.width, k.height):
+                _fail(path, topics["camera"], f"image is {size[0]}x{size[1]}, CameraInfo says {k.width}x{k.height}",
+                      "record the CameraInfo that belongs to this image topic", index)
     return rec
 
 
-def _check_frame_sizes(path: Path, topic: str, rec: Recording) -> None:
-    from PIL import Image
-
-    k = rec.intrinsics
-    for _, index, data, fmt in rec.frames:
-        try:
-            with Image.open(io.BytesIO(data)) as im:
-                size = im.size
-        except Exception as exc:  # PIL raises UnidentifiedImageError, SyntaxError, OSError for damaged data
-            _fail(path, topic, f"{fmt.upper()} image data cannot be decoded ({type(exc).__name__})",
-                  "the message is damaged; re-record it", index)
-        if size != (k.width, k.height):
-            _fail(path, topic, f"image is {size[0]}x{size[1]}, CameraInfo says {k.width}x{k.height}",
-                  "record the CameraInfo that belongs to this image topic", index)
+def load_frames(rec: Recording, wanted) -> None:
+    """Fill in the bytes of the frames at positions `wanted` of `rec.frames` (a second pass over the camera
+    topic): only the frames a capture directory keeps are ever held in memory, however long the drive."""
+    want = {rec.frames[i][1]: i for i in wanted if rec.frames[i][2] is None}
+    if not want:
+        return
+    topic = rec.topics["camera"]
+    with open_reader(rec.path) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]
+        for index, (conn, _, raw) in enumerate(messages(reader, rec.path, conns)):
+            i = want.get(index)
+            if i is None:
+                continue
+            data, _, _ = _image_bytes(rec.path, topic, index, reader.deserialize(raw, conn.msgtype), conn.msgtype)
+            stamp, _, _, fmt = rec.frames[i]
+            rec.frames[i] = (stamp, index, data, fmt)

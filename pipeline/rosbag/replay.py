@@ -17,8 +17,8 @@ import numpy as np
 
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem
-from pipeline.rosbag.ingest import BagOptions, Drive, _extract, _map, _site, laser_of
-from pipeline.rosbag.read import read_recording
+from pipeline.rosbag.ingest import BagOptions, Drive, _extract, _map, _site, kept_frames, laser_of
+from pipeline.rosbag.read import load_frames, read_recording
 
 POSE_TOPIC = "/siteloc/pose"
 
@@ -41,6 +41,7 @@ def bag_dataset(bag: Path, root: Path, opts: BagOptions, cfg: SitelocConfig, map
         raise InputError(f"{path}: no laser scans", [Problem(str(path), "has no sensor_msgs/LaserScan topic",
                                                              fix="the filter needs the laser; record /scan")])
     drive = _extract(rec, Rig().yaw_offsets, opts, cfg.ingest.heading_tolerance_deg, use_stops=False)
+    load_frames(rec, kept_frames(drive))
     site = _site([rec], [drive], "".join(c if c.isalnum() or c in "_.-" else "_" for c in rec.name), opts)
     laser, _ = laser_of(rec, opts)
     write_map(root / "map.yaml", _map([rec], map_yaml))

@@ -120,3 +120,19 @@ def test_export_keeps_the_mounts_of_a_site_that_came_from_a_recording(tmp_path):
     doc["extrinsics"]["base_from_camera"] = {"xyz": [0.2, 0.0, 1.2], "quat_xyzw": [float(v) for v in left.as_quat()]}
     floor = camera_on_floor(Site.model_validate(doc), 1.2)[0]
     assert floor == pytest.approx([0.2, 0.0, np.pi / 2])
+
+
+def test_only_the_kept_frames_are_read_into_memory(tmp_path):
+    import csv
+
+    from pipeline.rosbag.read import load_frames, read_recording
+
+    cfg = load_config("demo")
+    site = write_capture_site(tmp_path / "site")
+    bags = run_export_bag(cfg, inputs={"site": site}, outputs={"out": tmp_path / "bags"}, fmt="bag", progress=False)
+    rec = read_recording(bags / "capture.bag")
+    assert len(rec.frames) == 24 and all(data is None for _, _, data, _ in rec.frames)
+    load_frames(rec, {0, 7})
+    views = [r["image"] for r in csv.DictReader((site / "captures.csv").open())]
+    assert rec.frames[0][2] == (site / views[0]).read_bytes() and rec.frames[7][2] == (site / views[7]).read_bytes()
+    assert sum(data is not None for _, _, data, _ in rec.frames) == 2
