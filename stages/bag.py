@@ -34,7 +34,8 @@ clock is off by a known amount is corrected with --time-offset camera=-0.12.
 Writes into --out: site.yaml (intrinsics, laser, tf_static's 3-D extrinsics), map.yaml + map.pgm,
 captures.csv + images/ (stopNNNN_vK.jpg in time order: label these for annotations.json), runs/,
 bag_report.json + bag_report.md (what was dropped and why: stamps without a pose, duplicate stamps,
-tf gaps) and config.yaml. --annotations copies a COCO file for those images in.
+tf gaps, silences of the laser) and config.yaml. --annotations brings a COCO file's boxes along, its
+images matched to the stop images by file name or else by their bytes.
 
 Example: siteloc ingest-bag recordings/ --out data/mysite/site --map maps/floor3.yaml
 """

@@ -19,6 +19,7 @@ import numpy as np
 import pycolmap
 
 from pipeline.errors import InputError, Problem, Problems
+from pipeline.io.captures import parse_pose
 from pipeline.runtime.motion import wrap_angle
 
 ANCHOR_COLUMNS = ("image", "x", "y", "theta")
@@ -84,15 +85,8 @@ def read_anchors(path: Path, names: set[str], problems: Problems) -> list[Anchor
             return []
         for line, rec in enumerate(reader, start=2):
             rec = {k.strip(): (v or "").strip() for k, v in rec.items() if k is not None}
-            bad, nums = [], {}
-            for col in ("x", "y", "theta"):
-                try:
-                    nums[col] = float(rec[col])
-                except ValueError:
-                    bad.append(f"{col} {rec[col]!r} is not a number")
-                    continue
-                if not math.isfinite(nums[col]):
-                    bad.append(f"{col} is {rec[col]} (poses must be finite)")
+            bad: list[str] = []
+            nums = parse_pose(rec, bad)
             name = rec["image"]
             if name not in names and name.startswith("images/") and name[len("images/") :] in names:
                 name = name[len("images/") :]

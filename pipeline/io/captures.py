@@ -50,6 +50,20 @@ def site_relative(root: Path, rel: str) -> Path | None:
     return full
 
 
+def parse_pose(rec: dict[str, str], bad: list[str], cols=("x", "y", "theta")) -> dict[str, float]:
+    """The finite numbers of a CSV row's pose columns; what is wrong with the others goes to `bad`."""
+    nums = {}
+    for col in cols:
+        try:
+            nums[col] = float(rec[col])
+        except ValueError:
+            bad.append(f"{col} {rec[col]!r} is not a number")
+            continue
+        if not math.isfinite(nums[col]):
+            bad.append(f"{col} is {rec[col]} (poses must be finite)")
+    return nums
+
+
 def read_captures(path: Path, problems: Problems) -> list[CaptureRow]:
     """Parse captures.csv, reporting every unparsable row; returns the rows that parsed."""
     if not path.is_file():
@@ -79,15 +93,7 @@ def read_captures(path: Path, problems: Problems) -> list[CaptureRow]:
             except ValueError:
                 bad.append(f"view {rec['view']!r} is not an integer")
                 view = -1
-            nums = {}
-            for col in ("x", "y", "theta"):
-                try:
-                    nums[col] = float(rec[col])
-                except ValueError:
-                    bad.append(f"{col} {rec[col]!r} is not a number")
-                    continue
-                if not math.isfinite(nums[col]):
-                    bad.append(f"{col} is {rec[col]} (poses must be finite)")
+            nums = parse_pose(rec, bad)
             if not rec["image"]:
                 bad.append("image is empty")
             if not rec["stop_id"]:

@@ -202,7 +202,7 @@ def _kidnapped(odom: np.ndarray, ref: np.ndarray, opts: BagOptions) -> list[bool
 
 
 def _site(recs: list[Recording], drives: list[Drive], name: str, opts: BagOptions):
-    from pipeline.io.site import Camera, Extrinsic, Extrinsics, Laser, Site
+    from pipeline.io.site import Extrinsic, Extrinsics, Laser, Site
 
     with_cam = [r for r in recs if r.intrinsics is not None]
     if not with_cam:
@@ -215,7 +215,7 @@ def _site(recs: list[Recording], drives: list[Drive], name: str, opts: BagOption
             raise InputError("recordings disagree on the camera", [Problem(
                 f"{r.path} {r.topics['camera_info']}", f"intrinsics {r.intrinsics} differ from {k} "
                 f"({with_cam[0].path})", fix="ingest recordings of one calibrated camera together")])
-    camera = Camera(width=k.width, height=k.height, fx=k.fx, fy=k.fy, cx=k.cx, cy=k.cy)
+    camera = k
     laser, ext = Laser(), {}
     with_laser = [r for r in recs if r.laser is not None]
     for r in with_laser[1:]:

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import InputError, Problem
+from pipeline.io.site import Camera
 from pipeline.rosbag.bagfile import bag_name, messages, open_reader
 from pipeline.rosbag.messages import CAMERA_INFO, COMPRESSED, GRID, IMAGE, ODOMETRY, SCAN, TF, stamp_of
 from pipeline.rosbag.messages import field as msg_field
@@ -29,23 +30,13 @@ ROLES = tuple(ROLE_TYPES)
 
 
 @dataclass
-class Intrinsics:
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-
-
-@dataclass
 class Recording:
     path: Path
     name: str
     # stamp, message index, bytes (None until `load_frames`), jpeg|png
     frames: list[tuple[float, int, bytes | None, str]] = field(default_factory=list)
     camera_frame: str | None = None
-    intrinsics: Intrinsics | None = None
+    intrinsics: Camera | None = None
     scan_stamps: np.ndarray | None = None
     ranges: np.ndarray | None = None  # (N, beams) float32
     laser: dict | None = None  # angle_min, angle_increment, beams, range_max (radians, m)
@@ -133,7 +124,7 @@ def _image_bytes(path: Path, topic: str, index: int, msg, typename: str,
     return buf.getvalue(), "png", size
 
 
-def _intrinsics(path: Path, topic: str, index: int, msg) -> Intrinsics:
+def _intrinsics(path: Path, topic: str, index: int, msg) -> Camera:
     k = np.asarray(msg_field(msg, "k"), dtype=np.float64)
     d = np.asarray(msg_field(msg, "d"), dtype=np.float64)
     if k.size != 9 or k[0] <= 0 or k[4] <= 0:
@@ -142,7 +133,11 @@ def _intrinsics(path: Path, topic: str, index: int, msg) -> Intrinsics:
     if d.size and np.any(np.abs(d) > 1e-9):
         _fail(path, topic, f"distortion D={np.round(d, 4).tolist()} is not zero: siteloc needs rectified images",
               "record the rectified topic (image_rect, from image_proc) and its CameraInfo", index)
-    return Intrinsics(int(msg.width), int(msg.height), float(k[0]), float(k[4]), float(k[2]), float(k[5]))
+    if msg.width <= 0 or msg.height <= 0:
+        _fail(path, topic, f"CameraInfo says the image is {msg.width}x{msg.height}",
+              "record the CameraInfo the camera driver publishes with its calibration", index)
+    return Camera(width=int(msg.width), height=int(msg.height), fx=float(k[0]), fy=float(k[4]), cx=float(k[2]),
+                  cy=float(k[5]))
 
 
 def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dict[str, float] | None = None,
@@ -166,7 +161,7 @@ def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dic
         counts = {t: 0 for t in wanted}
         last_stamp: dict[str, float] = {}
         scans, scan_stamps, odom, sizes = [], [], [], []
-        first_info: tuple[int, Intrinsics] | None = None
+        first_info: tuple[int, Camera] | None = None
         total = sum(c.msgcount for c in conns)
         msgs = messages(reader, path, conns)
         for conn, _, raw in progress_bar(msgs, total=total, desc=f"reading {rec.name}", unit="msg",

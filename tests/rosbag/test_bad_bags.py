@@ -164,6 +164,14 @@ def test_camera_info_size_differs_from_the_images(tiny, tmp_path):
     fails(tmp_path, bags, f"{CAMERA} message 0", "image is 64x48, CameraInfo says 80x48")
 
 
+def test_camera_info_without_an_image_size(tiny, tmp_path):
+    def unsized(msg, k, w):
+        return dataclasses.replace(msg, width=0, height=0)
+
+    bags = broken(tiny, tmp_path, only(INFO, unsized))
+    fails(tmp_path, bags, f"{INFO} message 0", "CameraInfo says the image is 0x0")
+
+
 def test_intrinsics_change_mid_recording(tiny, tmp_path):
     def recalibrated(msg, k, w):
         if k < 1:
