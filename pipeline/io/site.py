@@ -76,6 +76,13 @@ class Extrinsic(_Strict):
     xyz: tuple[float, float, float]
     quat_xyzw: tuple[float, float, float, float]
 
+    @model_validator(mode="after")
+    def _unit(self) -> Extrinsic:
+        norm = math.sqrt(sum(q * q for q in self.quat_xyzw))
+        if abs(norm - 1.0) > 1e-3:
+            raise ValueError(f"quat_xyzw must be a unit quaternion (its norm is {norm:.4f})")
+        return self
+
 
 class Extrinsics(_Strict):
     """The sensors' 3-D mounts as a recording's tf_static gave them (`siteloc ingest-bag`); optional.
