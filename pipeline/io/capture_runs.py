@@ -46,6 +46,27 @@ def _parse_bool(text: str) -> bool | None:
     raise ValueError(f"kidnapped {text!r} is not 0/1")
 
 
+def write_run(run_dir: Path, t, odom, gt, ranges, images, kidnapped) -> Path:
+    """`trajectory.csv` + `scans.npy` of one run in this format, each file written atomically; a NaN
+    ground-truth pose is written as empty (unknown), an image of None as no frame."""
+    import io
+
+    from pipeline.io.atomic import atomic_file, write_text_atomic
+
+    run_dir = Path(run_dir)
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow([*REQUIRED, *OPTIONAL])
+    for i in range(len(t)):
+        g = ["", "", ""] if np.isnan(gt[i][0]) else [repr(float(v)) for v in gt[i]]
+        w.writerow([repr(float(t[i])), *(repr(float(v)) for v in odom[i]), *g, images[i] or "",
+                    int(bool(kidnapped[i]))])
+    with atomic_file(run_dir / "scans.npy", "wb") as fh:
+        np.save(fh, np.asarray(ranges, dtype=np.float32), allow_pickle=False)
+    write_text_atomic(run_dir / "trajectory.csv", buf.getvalue())
+    return run_dir
+
+
 def read_run(
     run_dir: Path, root: Path, site: Site | None, occ_map: OccupancyMap | None, problems: Problems
 ) -> CaptureRun | None:

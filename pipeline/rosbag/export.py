@@ -21,6 +21,7 @@ from pipeline.config import OdometryNoise, SitelocConfig, write_effective_config
 from pipeline.io.atomic import atomic_dir, write_text_atomic
 from pipeline.rosbag.bagfile import BagWriter
 from pipeline.rosbag.messages import CAMERA_INFO, COMPRESSED, GRID, ODOMETRY, SCAN, TF, yaw_quat
+from pipeline.rosbag.transforms import compose2d, inverse2d
 from pipeline.runtime.motion import wrap_angle
 
 START = 1_700_000_000.0  # bag clock of the first recording (an ordinary Unix time; fixed for reproducibility)
@@ -50,18 +51,6 @@ def _quat(matrix: np.ndarray) -> tuple[float, ...]:
     from scipy.spatial.transform import Rotation
 
     return tuple(Rotation.from_matrix(matrix).as_quat())
-
-
-def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """SE(2) a * b for (N, 3) arrays."""
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    return np.column_stack([a[:, 0] + c * b[:, 0] - s * b[:, 1], a[:, 1] + s * b[:, 0] + c * b[:, 1],
-                            wrap_angle(a[:, 2] + b[:, 2])])
-
-
-def _inverse(a: np.ndarray) -> np.ndarray:
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    return np.column_stack([-c * a[:, 0] - s * a[:, 1], s * a[:, 0] - c * a[:, 1], wrap_angle(-a[:, 2])])
 
 
 def interpolate_poses(t: np.ndarray, poses: np.ndarray, at: np.ndarray) -> np.ndarray:
@@ -152,12 +141,12 @@ def capture_session(v, camera_height: float = 1.2) -> tuple[np.ndarray, np.ndarr
     for r in v.rows:
         by_stop.setdefault(r.stop_id, []).append(r)
     planner = RoutePlanner(v.occ_map, clearance=0.15)
-    cam_from_base = _inverse(camera_on_floor(v.site, camera_height))
+    cam_from_base = inverse2d(camera_on_floor(v.site, camera_height))
     poses: list[np.ndarray] = []
     shots: list[tuple[int, str]] = []
     for stop_rows in by_stop.values():
         views = sorted(stop_rows, key=lambda r: r.view)
-        base_of = {r.image: _compose(np.array([[r.x, r.y, r.theta]]), cam_from_base)[0] for r in views}
+        base_of = {r.image: compose2d(np.array([[r.x, r.y, r.theta]]), cam_from_base)[0] for r in views}
         here = base_of[views[0].image]
         if poses:
             last = poses[-1]
@@ -204,7 +193,7 @@ def write_capture_bag(path: Path, v, fmt: str, start: float, seed: int, camera_h
         _topics(w, scans=False)
         _static(w, start, v.site, camera_height, laser_height)
         _map(w, start, v.occ_map)
-        _odometry_and_tf(w, start + times, odom, start + times, _compose(gt, _inverse(odom)))
+        _odometry_and_tf(w, start + times, odom, start + times, compose2d(gt, inverse2d(odom)))
         for seq, (t, img) in enumerate(shots):
             _image(w, v.root, img, start + t, v.site.camera, seq)
         counts = dict(w.counts)
@@ -217,7 +206,7 @@ def write_run_bag(path: Path, v, run, fmt: str, start: float, camera_height: flo
     times = np.unique(np.round(np.r_[grid, t], 6))
     odom = interpolate_poses(t, run.odom, times)
     known = ~np.isnan(run.gt[:, 0])
-    map_from_odom = _compose(run.gt[known], _inverse(run.odom[known]))
+    map_from_odom = compose2d(run.gt[known], inverse2d(run.odom[known]))
     laser = v.site.laser
     scan_time = float(np.median(np.diff(t))) if len(t) > 1 else 0.1
     with BagWriter(path, fmt) as w:

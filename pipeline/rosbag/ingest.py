@@ -23,8 +23,10 @@ import numpy as np
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem
 from pipeline.io.atomic import atomic_dir, write_bytes_atomic, write_text_atomic
+from pipeline.io.capture_runs import write_run
 from pipeline.rosbag.read import Recording, load_frames, read_recording
 from pipeline.rosbag.stops import stops_every, turning_stops
+from pipeline.rosbag.transforms import compose2d, inverse2d
 from pipeline.runtime.motion import wrap_angle
 
 
@@ -118,7 +120,7 @@ def _t0(rec: Recording) -> float:
     return min(firsts) if firsts else 0.0
 
 
-def _extract(rec: Recording, site_offsets, opts: BagOptions, tol_deg: float, use_stops: bool) -> Drive:
+def extract_drive(rec: Recording, site_offsets, opts: BagOptions, tol_deg: float, use_stops: bool) -> Drive:
     m, odom_f, base = _frames(rec, opts)
     drive = Drive(rec)
     cam_mount = _mount(rec, base, rec.camera_frame, "camera")
@@ -186,13 +188,11 @@ def kept_frames(d: Drive) -> set[int]:
 
 def _kidnapped(odom: np.ndarray, ref: np.ndarray, opts: BagOptions) -> list[bool]:
     """Step k is kidnapped when the reference moved unlike the odometry since step k-1."""
-    from pipeline.rosbag.export import _compose, _inverse
-
     out = [False] * len(odom)
     if len(odom) < 2:
         return out
-    d_odom = _compose(_inverse(odom[:-1]), odom[1:])
-    d_ref = _compose(_inverse(ref[:-1]), ref[1:])
+    d_odom = compose2d(inverse2d(odom[:-1]), odom[1:])
+    d_ref = compose2d(inverse2d(ref[:-1]), ref[1:])
     jump = np.hypot(*(d_ref[:, :2] - d_odom[:, :2]).T)
     turn = np.abs(wrap_angle(d_ref[:, 2] - d_odom[:, 2]))
     flag = (jump > opts.kidnap_jump_m) | (turn > math.radians(opts.kidnap_jump_deg))
@@ -201,7 +201,7 @@ def _kidnapped(odom: np.ndarray, ref: np.ndarray, opts: BagOptions) -> list[bool
     return out
 
 
-def _site(recs: list[Recording], drives: list[Drive], name: str, opts: BagOptions):
+def site_of(recs: list[Recording], drives: list[Drive], name: str, opts: BagOptions):
     from pipeline.io.site import Extrinsic, Extrinsics, Laser, Site
 
     with_cam = [r for r in recs if r.intrinsics is not None]
@@ -248,7 +248,7 @@ def laser_of(r: Recording, opts: BagOptions):
     return laser, Extrinsic(xyz=tuple(np.round(mount.xyz[0], 6)), quat_xyzw=tuple(np.round(mount.rot.as_quat()[0], 9)))
 
 
-def _map(recs: list[Recording], map_yaml: Path | None):
+def map_of(recs: list[Recording], map_yaml: Path | None):
     from pipeline.io.map_yaml import read_map
 
     if map_yaml is not None:
@@ -266,27 +266,16 @@ def _write_runs(tmp: Path, drives: list[Drive], site) -> dict:
         if d.run is None:
             continue
         run, name = d.run, d.rec.name
-        rdir = tmp / "runs" / name
-        rdir.mkdir(parents=True)
-        rows = []
-        for k in range(len(run["t"])):
-            img = ""
-            if run["image"][k] is not None:
-                _, _, data, fmt = d.rec.frames[run["image"][k]]
-                img = f"images/runs/{name}/{k:04d}.{'jpg' if fmt == 'jpeg' else 'png'}"
-                write_bytes_atomic(tmp / img, data)
-            g = run["gt"][k]
-            gt = ["", "", ""] if np.isnan(g[0]) else [repr(float(v)) for v in g]
-            rows.append([repr(float(run["t"][k])), *(repr(float(v)) for v in run["odom"][k]), *gt, img,
-                         int(run["kidnapped"][k])])
-        buf = io.StringIO()
-        w = csv.writer(buf, lineterminator="\n")
-        w.writerow(["t", "odom_x", "odom_y", "odom_theta", "gt_x", "gt_y", "gt_theta", "image", "kidnapped"])
-        w.writerows(rows)
-        write_text_atomic(rdir / "trajectory.csv", buf.getvalue())
-        with open(rdir / "scans.npy", "wb") as fh:
-            np.save(fh, np.asarray(run["ranges"], dtype=np.float32), allow_pickle=False)
-        out[name] = {"steps": len(rows), "images": sum(1 for r in rows if r[7]),
+        images = []
+        for k, fi in enumerate(run["image"]):
+            if fi is None:
+                images.append(None)
+                continue
+            _, _, data, fmt = d.rec.frames[fi]
+            images.append(f"images/runs/{name}/{k:04d}.{'jpg' if fmt == 'jpeg' else 'png'}")
+            write_bytes_atomic(tmp / images[-1], data)
+        write_run(tmp / "runs" / name, run["t"], run["odom"], run["gt"], run["ranges"], images, run["kidnapped"])
+        out[name] = {"steps": len(images), "images": sum(i is not None for i in images),
                      "kidnapped_steps": int(np.sum(run["kidnapped"]))}
     return out
 
@@ -398,12 +387,12 @@ def run_ingest_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Path]
     n_msgs = sum(r.messages for r in recs)
     offsets = Rig().yaw_offsets
     tol_deg = opts.view_tolerance_deg or (15.0 if opts.stops == "every" else cfg.ingest.heading_tolerance_deg)
-    drives = [_extract(r, offsets, opts, tol_deg, not opts.stops_from or r.name in opts.stops_from) for r in recs]
+    drives = [extract_drive(r, offsets, opts, tol_deg, not opts.stops_from or r.name in opts.stops_from) for r in recs]
     for d in drives:
         load_frames(d.rec, kept_frames(d))
     name = opts.name or "".join(c if c.isalnum() or c in "_.-" else "_" for c in out.name) or "site"
-    site = _site(recs, drives, name, opts)
-    occ = _map(recs, inputs.get("map"))
+    site = site_of(recs, drives, name, opts)
+    occ = map_of(recs, inputs.get("map"))
     n_stops = sum(len(d.stops) for d in drives)
     if n_stops == 0:
         raise InputError("no capture stops", [Problem(str(d.rec.path), f"{len(d.incomplete)} incomplete stops, none "

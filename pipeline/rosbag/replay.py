@@ -17,7 +17,7 @@ import numpy as np
 
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem
-from pipeline.rosbag.ingest import BagOptions, Drive, _extract, _map, _site, kept_frames, laser_of
+from pipeline.rosbag.ingest import BagOptions, Drive, extract_drive, kept_frames, laser_of, map_of, site_of
 from pipeline.rosbag.read import load_frames, read_recording
 
 POSE_TOPIC = "/siteloc/pose"
@@ -40,11 +40,11 @@ def bag_dataset(bag: Path, root: Path, opts: BagOptions, cfg: SitelocConfig, map
     if rec.ranges is None:
         raise InputError(f"{path}: no laser scans", [Problem(str(path), "has no sensor_msgs/LaserScan topic",
                                                              fix="the filter needs the laser; record /scan")])
-    drive = _extract(rec, Rig().yaw_offsets, opts, cfg.ingest.heading_tolerance_deg, use_stops=False)
+    drive = extract_drive(rec, Rig().yaw_offsets, opts, cfg.ingest.heading_tolerance_deg, use_stops=False)
     load_frames(rec, kept_frames(drive))
-    site = _site([rec], [drive], "".join(c if c.isalnum() or c in "_.-" else "_" for c in rec.name), opts)
+    site = site_of([rec], [drive], "".join(c if c.isalnum() or c in "_.-" else "_" for c in rec.name), opts)
     laser, _ = laser_of(rec, opts)
-    write_map(root / "map.yaml", _map([rec], map_yaml))
+    write_map(root / "map.yaml", map_of([rec], map_yaml))
     write_site(root / "site.yaml", site)
     run = drive.run
     images: list[str | None] = []
@@ -89,8 +89,8 @@ def write_estimates_bag(estimates: Path, drive: Drive, dst: Path, force: bool = 
     """Trial 0's estimates as /siteloc/pose and map -> odom on /tf; `.bag` is ROS 1, else mcap."""
     from pipeline.io import tables
     from pipeline.rosbag.bagfile import BagWriter
-    from pipeline.rosbag.export import _compose, _inverse
     from pipeline.rosbag.messages import POSE_COV, TF, yaw_quat
+    from pipeline.rosbag.transforms import compose2d, inverse2d
 
     est = tables.read_table(estimates, "estimates").to_pydict()
     trial0 = [i for i, tr in enumerate(est["trial"]) if tr == 0]
@@ -99,7 +99,7 @@ def write_estimates_bag(estimates: Path, drive: Drive, dst: Path, force: bool = 
                      [0.0, 0.0, est["cov_tt"][i]]] for i in trial0])
     run = drive.run
     stamps = run["t0"] + np.asarray(run["t"])
-    map_from_odom = _compose(pose, _inverse(np.asarray(run["odom"])))
+    map_from_odom = compose2d(pose, inverse2d(np.asarray(run["odom"])))
     fmt = "bag" if dst.suffix == ".bag" else "mcap"
     odom_frame = drive.rec.odom_frame or "odom"
     if dst.exists() and not force:

@@ -10,8 +10,6 @@ odometry motion model's noise (`pipeline.runtime.motion`, as `pipeline.io.odomet
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +19,7 @@ from scipy.ndimage import distance_transform_edt, label
 from scipy.sparse.csgraph import dijkstra
 
 from pipeline.config import OdometryNoise
-from pipeline.io.atomic import atomic_file, write_text_atomic
+from pipeline.io.capture_runs import write_run
 from pipeline.io.map_yaml import OccupancyMap
 from pipeline.io.odometry import integrate_deltas, noise_alphas
 from pipeline.io.site import Rig
@@ -321,13 +319,5 @@ def write_capture_run(run_dir: Path, run: SimRun, ranges: np.ndarray, image_name
     images = list(image_names) if image_names is not None else [None] * n
     if ranges.ndim != 2 or ranges.shape[0] != n or len(images) != n:
         raise ValueError(f"{n} steps need ranges [{n}, beams] and {n} image names, got {ranges.shape}, {len(images)}")
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["t", "odom_x", "odom_y", "odom_theta", "gt_x", "gt_y", "gt_theta", "image", "kidnapped"])
-    for i in range(n):
-        w.writerow([repr(float(run.t[i])), *(repr(float(v)) for v in run.odom[i]),
-                    *(repr(float(v)) for v in run.gt[i]), images[i] or "", int(bool(run.kidnapped[i]))])
-    with atomic_file(run_dir / "scans.npy", "wb") as fh:
-        np.save(fh, ranges, allow_pickle=False)
-    write_text_atomic(run_dir / "trajectory.csv", buf.getvalue())
+    write_run(run_dir, run.t, run.odom, run.gt, ranges, images, run.kidnapped)
     return run_dir
