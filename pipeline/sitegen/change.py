@@ -1,7 +1,8 @@
 """Environment change: the same building some months later (the case of a team retraining after a change).
 
-Walls, doors and windows stay; furniture moves (chairs and bins shift, some desks are turned), posters
-are replaced or taken down and new ones hung, some plants go, and the lighting differs (a global
+Walls, doors and windows stay, and so do room plates, escape plans and signs; furniture moves (chairs and
+bins shift), posters are replaced or taken down and new ones hung, notice boards get new notes, some
+plants go, and the lighting differs (a global
 exposure and tint shift applied by the renderer). Everything is seeded, so the changed site is
 reproducible too.
 """
@@ -13,6 +14,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from pipeline.sitegen.identity import SIGNAGE_KINDS
 from pipeline.sitegen.scene import Scene, SceneObject
 
 MOVABLE = {"chair", "trash_bin", "plant"}
@@ -25,18 +27,30 @@ class ChangeSpec:
     poster_replace_share: float = 0.5
     poster_remove_share: float = 0.15
     plant_remove_share: float = 0.3
+    board_update_share: float = 0.7  # notice boards whose notes are replaced
     exposure_gain: float = 0.85  # the changed site's lighting is dimmer and warmer
     tint: tuple[float, float, float] = (1.05, 1.0, 0.9)
 
 
-def change_scene(scene: Scene, seed: int, spec: ChangeSpec = ChangeSpec(), poster_pictures: int = 12) -> Scene:
-    """A changed copy of `scene`: moved furniture, new and removed posters, fewer plants.
+def change_scene(scene: Scene, seed: int, spec: ChangeSpec = ChangeSpec(), poster_pictures: int = 12,
+                 unique_pictures: bool = False) -> Scene:
+    """A changed copy of `scene`: moved furniture, new and removed posters, fewer plants, notice boards
+    with new notes. Room plates, escape plans and signs stay, as they do in buildings. With
+    `unique_pictures`, a replaced or new poster shows a picture the site never showed (the pool's next).
 
     Instance ids are renumbered densely; the returned scene's `name` gains a `-changed` suffix.
     """
     rng = np.random.default_rng(seed + 104729)
+    fresh = iter(range(sum(o.cls == "poster" for o in scene.objects), 1 << 30))
+
+    def new_picture() -> int:
+        return next(fresh) if unique_pictures else int(rng.integers(0, poster_pictures))
+
     kept: list[SceneObject] = []
     for obj in scene.objects:
+        if obj.kind == "notice_board" and rng.random() < spec.board_update_share:
+            obj = replace(obj, label=obj.label.rsplit(":", 1)[0] + ":v1")  # the notes are new ones
+
         if obj.cls == "plant" and rng.random() < spec.plant_remove_share:
             continue
         if obj.cls == "poster":
@@ -44,7 +58,7 @@ def change_scene(scene: Scene, seed: int, spec: ChangeSpec = ChangeSpec(), poste
             if u < spec.poster_remove_share:
                 continue
             if u < spec.poster_remove_share + spec.poster_replace_share:
-                obj = replace(obj, texture=int(rng.integers(0, poster_pictures)))
+                obj = replace(obj, texture=new_picture())
         elif obj.cls in MOVABLE and rng.random() < spec.move_share:
             angle = rng.uniform(-math.pi, math.pi)
             dist = rng.uniform(*spec.move_m)
@@ -63,9 +77,9 @@ def change_scene(scene: Scene, seed: int, spec: ChangeSpec = ChangeSpec(), poste
         for _ in range(4):  # a few tries; a spot that would cover a door, a window or a poster is skipped
             along = rng.uniform(0.8, 1.6) * rng.choice([-1, 1])
             new = replace(src, x=src.x + along * dx, y=src.y + along * dy,
-                          texture=int(rng.integers(0, poster_pictures)))
+                          texture=new_picture())
             if not any(_overlaps(new, o) for o in kept if o.cls in ("door", "window", "poster", "exit_sign",
-                                                                      "fire_extinguisher")):
+                                                                      "fire_extinguisher") or o.kind in SIGNAGE_KINDS):
                 kept.append(new)
                 break
     objects = [replace(o, instance_id=i + 1) for i, o in enumerate(kept)]

@@ -9,9 +9,11 @@ regular spacing on corridor walls, an exit sign over every exterior door.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
+from pipeline.sitegen import identity
 from pipeline.sitegen.presets import SitePreset
 from pipeline.sitegen.scene import Rect, Room, Scene, SceneObject
 
@@ -20,7 +22,7 @@ _SIZES = {
     "door": (0.95, 0.08, 2.05), "door_exterior": (1.6, 0.1, 2.1), "window": (1.2, 0.12, 1.2),
     "chair": (0.5, 0.52, 0.9), "desk": (1.4, 0.7, 0.75), "table": (1.8, 0.9, 0.75), "cabinet": (0.8, 0.45, 1.2),
     "poster": (0.6, 0.03, 0.85), "fire_extinguisher": (0.22, 0.18, 0.6), "trash_bin": (0.32, 0.32, 0.45),
-    "plant": (0.5, 0.5, 1.2), "exit_sign": (0.36, 0.06, 0.16),
+    "plant": (0.5, 0.5, 1.2), "exit_sign": (0.36, 0.06, 0.16), **identity.SIZES,
 }
 
 
@@ -29,24 +31,30 @@ class _Placer:
         self.scene, self.preset, self.rng = scene, preset, rng
         self.t = preset.floor.wall_thickness / 2
         self.variants = 4  # models per class the asset library is asked for; indices wrap
+        self.plates: dict[str, str] = {}  # room name -> its plate's label (identity.room_plates)
 
     def add(self, cls: str, kind: str, x: float, y: float, z: float, yaw: float, room: str, *,
-            size: tuple[float, float, float] | None = None, blocks: bool = True, texture: int = -1) -> None:
+            size: tuple[float, float, float] | None = None, blocks: bool = True, texture: int = -1,
+            label: str = "", variant: int | None = None) -> None:
         if cls and cls not in self.scene.classes:
             cls = ""  # a class the site does not detect is still furniture
+        if variant is None:
+            variant = int(self.rng.integers(0, self.variants))
         self.scene.objects.append(SceneObject(
             instance_id=len(self.scene.objects) + 1, cls=cls, kind=kind, x=float(x), y=float(y), z=float(z),
             yaw=float(math.atan2(math.sin(yaw), math.cos(yaw))), size=size or _SIZES[kind],
-            variant=int(self.rng.integers(0, self.variants)), blocks_laser=blocks, room=room, texture=texture,
+            variant=variant, blocks_laser=blocks, room=room, texture=texture, label=label,
         ))
 
     def on_wall(self, cls: str, kind: str, rect: Rect, side: str, along: float, z: float, room: str,
-                blocks: bool = False, texture: int = -1) -> None:
-        """An object against the inside of `side` of `rect`, `along` metres from the side's start."""
+                blocks: bool = False, texture: int = -1, label: str = "",
+                shifts: tuple[float, ...] = (0.0, 0.6, -0.6, 1.2, -1.2)) -> bool:
+        """An object against the inside of `side` of `rect`, `along` metres from the side's start, slid by the
+        first of `shifts` that keeps it off doors, windows and fixtures; whether it found a place."""
         w, d, _ = _SIZES[kind]
         inward = _NORMALS[_opposite(side)]
         off = self.t + d / 2 + 0.01
-        for shift in (0.0, 0.6, -0.6, 1.2, -1.2):  # slide along the wall off doors, windows and fixtures
+        for shift in shifts:
             a = along + shift
             if not w / 2 <= a <= _side_length(rect, side) - w / 2:
                 continue
@@ -56,8 +64,10 @@ class _Placer:
                 x, y = (rect.x1 - off if side == "east" else rect.x0 + off), rect.y0 + a
             if kind in _WALL_HUNG and self._covers_fixture(x, y, w):
                 continue
-            self.add(cls, kind, x, y, z, inward, room, blocks=blocks, texture=texture)
-            return
+            self.add(cls, kind, x, y, z, inward, room, blocks=blocks, texture=texture, label=label,
+                     variant=0 if kind in identity.SIGNAGE_KINDS else None)
+            return True
+        return False
 
     def _covers_fixture(self, x: float, y: float, w: float, gap: float = 0.1) -> bool:
         return any(math.hypot(o.x - x, o.y - y) < (o.size[0] + w) / 2 + gap
@@ -65,8 +75,9 @@ class _Placer:
 
 
 # Things hung on walls must not cover each other or a door or window (they would render on top).
-_WALL_HUNG = {"poster", "fire_extinguisher", "exit_sign"}
-_WALL_FIXTURES = {"door", "door_exterior", "window", "poster", "fire_extinguisher", "exit_sign"}
+_WALL_HUNG = {"poster", "fire_extinguisher", "exit_sign", *identity.SIGNAGE_KINDS}
+_WALL_FIXTURES = {"door", "door_exterior", "window", "poster", "fire_extinguisher", "exit_sign",
+                  *identity.SIGNAGE_KINDS}
 
 
 def _opposite(side: str) -> str:
@@ -81,13 +92,26 @@ def furnish_scene(scene: Scene, preset: SitePreset, seed: int) -> Scene:
     """Place every object of the scene (in place) and return it."""
     rng = np.random.default_rng(seed + 7919)
     p = _Placer(scene, preset, rng)
+    spec, cue_rng = preset.identity, identity.identity_rng(seed)
+    if spec.wings > 1 or spec.wing_colours:
+        identity.assign_wings(scene, spec.wings, spec.wing_floor_materials, cue_rng)
+    if spec.room_types:
+        identity.assign_room_types(scene, cue_rng)
+    if spec.wing_colours:
+        identity.paint_rooms(scene, spec.accent_wall_share, cue_rng)
+    scene.outside_views = spec.outside_views
+    p.plates = identity.room_plates(scene, spec.plate_names_share, cue_rng) if spec.room_plates else {}
     for wall in scene.walls:
         _wall_fixtures(p, wall)
     for room in scene.rooms:
         if room.kind == "corridor":
-            _furnish_corridor(p, room)
+            _furnish_corridor(p, room, cue_rng)
         else:
             _furnish_room(p, room)
+    if spec.desk_clutter:
+        identity.desk_clutter(p, cue_rng)
+    if spec.unique_pictures:
+        identity.unique_pictures(scene)
     return scene
 
 
@@ -120,22 +144,18 @@ def _wall_fixtures(p: _Placer, wall) -> None:
             room_name = p.scene.room_at(lx, ly)[0]
             p.add("door", "door", lx, ly, 0.0, math.atan2(-side * dy, -side * dx), room_name,
                   size=(width, 0.05, 2.05))
+            if room_name in p.plates:  # the room's number beside its door, on the corridor side
+                identity.add_plate(p, p.plates[room_name], cx, cy, dx, dy, width, into + math.pi, room_name)
 
 
 def _furnish_room(p: _Placer, room: Room) -> None:
     r, rng, f = room.rect, p.rng, p.preset.furnishing
     far = _opposite(room.door_side)
     sides = [s for s in ("north", "south", "east", "west") if s not in (room.door_side, far)]
-    if room.kind == "meeting":
-        tw, td, _ = _SIZES["table"]
-        yaw = 0.0 if r.w >= r.h else math.pi / 2
-        p.add("", "table", r.cx, r.cy, 0.0, yaw, room.name)
-        for k in range(int(rng.integers(4, 7))):
-            a = yaw + (k % 2) * math.pi
-            along = (k // 2 - 1) * 0.6
-            x = r.cx + math.cos(a) * (td / 2 + 0.35) - math.sin(a) * along
-            y = r.cy + math.sin(a) * (td / 2 + 0.35) + math.cos(a) * along
-            p.add("chair", "chair", x, y, 0.0, a + math.pi / 2 + rng.normal(0, 0.15), room.name)
+    if room.kind in ("kitchen", "lounge", "storage"):
+        _furnish_service_room(p, room, far, sides)
+    elif room.kind == "meeting":
+        _table_with_chairs(p, room, None)
     else:
         length = _side_length(r, far)
         n_desks = max(1, int((length - 0.4) / 1.7))
@@ -165,15 +185,56 @@ def _furnish_room(p: _Placer, room: Room) -> None:
         p.on_wall("fire_extinguisher", "fire_extinguisher", r, room.door_side, 0.3, 0.0, room.name, blocks=True)
 
 
-def _furnish_corridor(p: _Placer, room: Room) -> None:
-    """Posters, extinguishers, exit signs, plants and bins along both long walls, away from openings."""
+def _table_with_chairs(p: _Placer, room: Room, chairs: int | None) -> None:
+    """A table in the middle, ringed by `chairs` chairs (None: 4 to 6)."""
+    r, rng = room.rect, p.rng
+    tw, td, _ = _SIZES["table"]
+    yaw = 0.0 if r.w >= r.h else math.pi / 2
+    p.add("", "table", r.cx, r.cy, 0.0, yaw, room.name)
+    for k in range(int(rng.integers(4, 7)) if chairs is None else chairs):
+        a = yaw + (k % 2) * math.pi
+        along = (k // 2 - 1) * 0.6
+        x = r.cx + math.cos(a) * (td / 2 + 0.35) - math.sin(a) * along
+        y = r.cy + math.sin(a) * (td / 2 + 0.35) + math.cos(a) * along
+        p.add("chair", "chair", x, y, 0.0, a + math.pi / 2 + rng.normal(0, 0.15), room.name)
+
+
+def _furnish_service_room(p: _Placer, room: Room, far: str, sides: list[str]) -> None:
+    """A kitchen (table, chairs, water cooler, cupboards), a lounge (sofas, a low table) or a storage room
+    (cabinets along the walls): the room types that make one part of a floor unlike another."""
+    r, rng = room.rect, p.rng
+    if room.kind == "kitchen":
+        _table_with_chairs(p, room, 4)
+        p.on_wall("", "water_cooler", r, sides[0], 0.5, 0.0, room.name, blocks=True)
+        for k in range(2):
+            p.on_wall("", "cabinet", r, far, 0.5 + 0.85 * k, 0.0, room.name, blocks=True)
+    elif room.kind == "lounge":
+        p.on_wall("", "sofa", r, far, _side_length(r, far) / 2, 0.0, room.name, blocks=True)
+        p.on_wall("", "sofa", r, sides[0], _side_length(r, sides[0]) / 2, 0.0, room.name, blocks=True)
+        p.on_wall("", "whiteboard", r, sides[-1], _side_length(r, sides[-1]) / 2, 0.0, room.name, blocks=True)
+    else:
+        for side in (far, *sides):
+            n = max(1, int((_side_length(r, side) - 0.6) / 0.9))
+            for k in range(n):
+                if rng.random() < 0.8:
+                    p.on_wall("", "cabinet", r, side, 0.5 + 0.9 * k, 0.0, room.name, blocks=True, shifts=(0.0,))
+
+
+def _furnish_corridor(p: _Placer, room: Room, cue_rng) -> None:
+    """Identity cues near the junctions, then posters, extinguishers, exit signs, plants, bins (and notice
+    boards when the preset has them) along both long walls, away from openings."""
     r, rng, f = room.rect, p.rng, p.preset.furnishing
     horizontal = r.w >= r.h
     long_sides = ("north", "south") if horizontal else ("east", "west")
     length = r.w if horizontal else r.h
     blocked = _blocked_spans(p.scene, r, horizontal)
+    identity.corridor_cues(p, room, p.preset.identity, blocked, cue_rng)
+    spec = p.preset.identity
+    boards = (("notice_board", spec.notice_board_spacing, identity.HEIGHTS["notice_board"], False),) \
+        if spec.notice_boards else ()
     for side in long_sides:
         for kind, spacing, z, blocks in (
+            *boards,
             ("poster", f.corridor_poster_spacing, 1.15, False),
             ("fire_extinguisher", f.extinguisher_spacing, 0.0, True),
             ("exit_sign", f.exit_sign_spacing, 2.3, False),
@@ -186,7 +247,10 @@ def _furnish_corridor(p: _Placer, room: Room) -> None:
                 width = _SIZES[kind][0]
                 if not any(a - 0.2 < pos + width / 2 and pos - width / 2 < b + 0.2 for a, b in blocked):
                     tex = int(rng.integers(0, f.poster_pictures)) if kind == "poster" else -1
-                    p.on_wall(kind, kind, r, side, along, z, room.name, blocks=blocks, texture=tex)
+                    cls = "" if kind in identity.SIGNAGE_KINDS else kind
+                    if p.on_wall(cls, kind, r, side, along, z, room.name, blocks=blocks, texture=tex) and not cls:
+                        o = p.scene.objects[-1]
+                        p.scene.objects[-1] = replace(o, label=identity.cue_label(p.scene, kind, o.x, o.y, o.yaw, 0))
                     blocked.append((pos - width / 2, pos + width / 2))
                 along += spacing * rng.uniform(0.7, 1.3)
 

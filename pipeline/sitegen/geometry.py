@@ -13,8 +13,10 @@ from collections import defaultdict
 
 import numpy as np
 
+from pipeline.sitegen.decals import DAYLIGHT, SiteTextures, clutter_model, is_pane, outside_part, signage_model
+from pipeline.sitegen.identity import SIGNAGE_KINDS
 from pipeline.sitegen.render import RenderMesh
-from pipeline.sitegen.scene import Scene, SceneObject, Wall
+from pipeline.sitegen.scene import Rect, Scene, SceneObject, Wall
 
 TILE_M = {"wall": 1.6, "floor": 1.2, "ceiling": 1.2}
 
@@ -83,35 +85,63 @@ def _tile(library, role: str, index: int) -> float:
     return TILE_M[role]
 
 
+PAINT_PIECE_M = 2.0  # walls are cut in pieces this long at most, so each face takes the paint of where it faces
+
+
 def structure_meshes(scene: Scene, library) -> list[RenderMesh]:
-    """Walls (one mesh per wall texture), floors (per floor texture) and the ceiling."""
+    """Walls (per wall texture), floors (per floor texture) and the ceiling. With wings (`sitegen.identity`)
+    each wall face is tinted by the room or wing it faces and corridor floors take their wing's material."""
+    from pipeline.sitegen.identity import floor_tint, surface_at
+
     textures = library.textures
     out = []
-    by_material: dict[int, list] = defaultdict(list)
+    by_material: dict[tuple, list] = defaultdict(list)
     wall_tex = textures["wall"]
     for wall in scene.walls:
-        tile = _tile(library, "wall", wall.material % len(wall_tex))
+        tile = _tile(library, "wall", wall.material % len(wall_tex))  # one repeat size per wall, whatever it wears
+        dx, dy = wall.direction
         for a0, a1, z0, z1 in wall_pieces(wall):
-            by_material[wall.material].extend(_box_faces(wall, a0, a1, z0, z1, tile))
-    for material, faces in sorted(by_material.items()):
+            if not scene.wings:
+                by_material[(wall.material, (1.0, 1.0, 1.0))].extend(_box_faces(wall, a0, a1, z0, z1, tile))
+                continue
+            n = max(1, math.ceil((a1 - a0) / PAINT_PIECE_M))
+            for k in range(n):
+                b0, b1 = a0 + (a1 - a0) * k / n, a0 + (a1 - a0) * (k + 1) / n
+                faces = _box_faces(wall, b0, b1, z0, z1, tile)
+                mx, my = wall.x0 + dx * (b0 + b1) / 2, wall.y0 + dy * (b0 + b1) / 2
+                for f, face in enumerate(faces):
+                    nx, ny = face[1][0][:2]
+                    probe = 0.3 if f < 2 else 0.05  # long faces look 0.3 m ahead; jambs and sills just off
+                    material, colour = surface_at(scene, mx + nx * probe, my + ny * probe, len(wall_tex))
+                    by_material[(material, colour)].append(face)
+    for (material, colour), faces in sorted(by_material.items()):
         pos, nrm, uv = _concat(faces)
-        out.append(RenderMesh(pos, nrm, uv, wall_tex[material % len(wall_tex)], (1.0, 1.0, 1.0)))
-    floors: dict[int, list] = defaultdict(list)
+        out.append(RenderMesh(pos, nrm, uv, wall_tex[material % len(wall_tex)], colour))
+    floors: dict[tuple, list] = defaultdict(list)
     for room in scene.rooms:
-        tile = _tile(library, "floor", room.floor_material % len(textures["floor"]))
-        r = room.rect
-        uv = [(x / tile, y / tile) for x, y in ((r.x0, r.y0), (r.x1, r.y0), (r.x1, r.y1), (r.x0, r.y1))]
-        floors[room.floor_material].append(
-            _quad((r.x0, r.y0, 0.0), (r.x1, r.y0, 0.0), (r.x1, r.y1, 0.0), (r.x0, r.y1, 0.0), (0, 0, 1), uv))
+        pieces = [(room.rect, room.floor_material)]
+        if scene.wings and room.kind == "corridor":  # a corridor crossing wings changes floor where they meet
+            pieces = [(c, w.floor_material) for w in scene.wings if (c := _clip(room.rect, w.rect)) is not None]
+        for r, material in pieces:
+            tile = _tile(library, "floor", material % len(textures["floor"]))
+            uv = [(x / tile, y / tile) for x, y in ((r.x0, r.y0), (r.x1, r.y0), (r.x1, r.y1), (r.x0, r.y1))]
+            tint = floor_tint(scene, r.cx, r.cy) if scene.wings and room.kind == "corridor" else (1.0, 1.0, 1.0)
+            floors[(material, tint)].append(
+                _quad((r.x0, r.y0, 0.0), (r.x1, r.y0, 0.0), (r.x1, r.y1, 0.0), (r.x0, r.y1, 0.0), (0, 0, 1), uv))
     floor_tex = textures["floor"]
-    for material, faces in sorted(floors.items()):
+    for (material, tint), faces in sorted(floors.items()):
         pos, nrm, uv = _concat(faces)
-        out.append(RenderMesh(pos, nrm, uv, floor_tex[material % len(floor_tex)], (1.0, 1.0, 1.0)))
+        out.append(RenderMesh(pos, nrm, uv, floor_tex[material % len(floor_tex)], tint))
     b, h, tile = scene.bounds, scene.wall_height, _tile(library, "ceiling", 0)
     uv = [(x / tile, y / tile) for x, y in ((b.x0, b.y0), (b.x1, b.y0), (b.x1, b.y1), (b.x0, b.y1))]
     pos, nrm, uvs = _quad((b.x0, b.y0, h), (b.x1, b.y0, h), (b.x1, b.y1, h), (b.x0, b.y1, h), (0, 0, -1), uv)
     out.append(RenderMesh(pos, nrm, uvs, textures["ceiling"][0], (1.0, 1.0, 1.0)))
     return out
+
+
+def _clip(a: Rect, b: Rect) -> Rect | None:
+    r = Rect(max(a.x0, b.x0), max(a.y0, b.y0), min(a.x1, b.x1), min(a.y1, b.y1))
+    return r if r.w > 1e-6 and r.h > 1e-6 else None
 
 
 def map_from_object(obj: SceneObject, model_size: tuple[float, float, float]) -> np.ndarray:
@@ -125,22 +155,32 @@ def map_from_object(obj: SceneObject, model_size: tuple[float, float, float]) ->
     return m
 
 
-def object_meshes(scene: Scene, library, poster_textures: list[np.ndarray]) -> list[RenderMesh]:
-    """Each object's model parts placed in the map frame, with the object's instance id."""
+def object_meshes(scene: Scene, library, textures: SiteTextures) -> list[RenderMesh]:
+    """Each object's model parts placed in the map frame, with the object's instance id; posters show their
+    picture, signage its drawn face, and window panes the outside view when the scene has one."""
     out = []
+    clutter: dict[int, object] = {}
     for obj in scene.objects:
-        model = library.model_for(obj.cls, obj.kind, obj.variant)
+        if obj.kind in SIGNAGE_KINDS:
+            model = signage_model(obj, textures.signage(obj))
+        elif obj.kind == "clutter":
+            model = clutter.setdefault(obj.variant, clutter_model(obj.variant))
+        else:
+            model = library.model_for(obj.cls, obj.kind, obj.variant)
         m = map_from_object(obj, model.size)
         normal_m = np.linalg.inv(m[:3, :3]).T
         for part in model.parts:
             pos = part.positions @ m[:3, :3].T + m[:3, 3]
             nrm = part.normals @ normal_m.T
             nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-9)
-            texture = part.texture
-            if obj.cls == "poster" and obj.texture >= 0 and poster_textures and getattr(part, "role", "") == "picture":
-                texture = poster_textures[obj.texture % len(poster_textures)]
+            texture, uvs, colour = part.texture, part.uvs, part.colour
             emissive = 0.8 if obj.cls == "exit_sign" else 0.0
-            out.append(RenderMesh(pos.astype(np.float32), nrm.astype(np.float32), part.uvs, texture, part.colour,
+            if obj.cls == "poster" and obj.texture >= 0 and getattr(part, "role", "") == "picture":
+                texture = textures.poster(obj.texture)
+            elif scene.outside_views and is_pane(obj, part):
+                texture, uvs = outside_part(obj, part, pos, scene, textures)
+                colour, emissive = (1.0, 1.0, 1.0), DAYLIGHT
+            out.append(RenderMesh(pos.astype(np.float32), nrm.astype(np.float32), uvs, texture, colour,
                                   instance_id=obj.instance_id, emissive=emissive))
     return out
 

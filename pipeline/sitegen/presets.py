@@ -1,8 +1,9 @@
 """Reference-site presets (`configs/sites/*.yaml`) validated into typed objects.
 
 A preset describes a building and how it is captured: floor size and corridor grid, room sizes, object
-densities, camera, laser, capture stops, runs and the rendering. `tiny` is for tests, `office` is the
-demo default (about 40 x 30 m), `paper` mimics the seed paper's 80 x 80 m floor.
+densities, identity cues, camera, laser, capture stops, runs and the rendering. `tiny` is for tests,
+`office` is the demo default (about 40 x 30 m, with the cues of a real building), `twins` the same floor
+without them (repetitive on purpose), `paper` mimics the seed paper's 80 x 80 m floor, with cues.
 """
 
 from __future__ import annotations
@@ -60,6 +61,27 @@ class Furnishing(Strict):
     poster_pictures: int = Field(12, ge=1, description="distinct poster pictures (repeated across the site)")
 
 
+class IdentitySpec(Strict):
+    """Identity cues of real buildings (`pipeline.sitegen.identity`); all off gives the plain repetitive floor."""
+
+    wings: int = Field(1, ge=1, le=8, description="zones of the floor, lettered A, B, ... (room numbers, colours)")
+    wing_colours: bool = Field(False, description="corridor walls in their wing's colour, rooms lightly tinted")
+    wing_floor_materials: int = Field(3, ge=1, description="floor textures the wings' corridors cycle through")
+    accent_wall_share: float = Field(0.25, ge=0, le=1, description="rooms painted in a colour of their own")
+    room_plates: bool = Field(False, description="a number plate (and a name) beside every room door")
+    plate_names_share: float = Field(0.6, ge=0, le=1, description="offices whose plate also carries a name")
+    unique_pictures: bool = Field(False, description="every poster its own picture (else furnishing.poster_pictures "
+                                  "pictures repeat)")
+    notice_boards: bool = Field(False, description="notice boards near junctions and along corridors")
+    notice_board_spacing: float = Field(14.0, gt=1.0, description="metres between notice boards along a corridor")
+    escape_plans: bool = Field(False, description="fire-escape plans of this floor near junctions")
+    signs: bool = Field(False, description="directory signs naming the wings each way, near junctions")
+    room_types: bool = Field(False, description="a kitchen, a lounge and a storage room per wing, each furnished "
+                             "its own way")
+    desk_clutter: bool = Field(False, description="monitors, books and papers on desks")
+    outside_views: bool = Field(False, description="window panes show each facade's own outside view")
+
+
 class CameraSpec(Strict):
     width: int = Field(640, ge=32)
     height: int = Field(480, ge=24)
@@ -112,6 +134,7 @@ class SitePreset(Strict):
     stops: StopSpec = StopSpec()
     runs: RunSpec = RunSpec()
     render: RenderSpec = RenderSpec()
+    identity: IdentitySpec = IdentitySpec()
     map_resolution: float = Field(0.05, gt=0, le=0.5)
 
 

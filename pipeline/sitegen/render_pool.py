@@ -85,6 +85,7 @@ def open_render_context(preset, seed: int, change: bool, allow_fallback: bool, r
     """A renderer with the site's scene uploaded, and the context `render_views` needs; returns (ctx, renderer)
     (close the renderer when done)."""
     from pipeline.sitegen.assets import load_assets
+    from pipeline.sitegen.decals import SiteTextures
     from pipeline.sitegen.geometry import object_meshes, structure_meshes
     from pipeline.sitegen.render import Renderer
     from pipeline.sitegen.synth import build_scene, intrinsics_of
@@ -95,7 +96,8 @@ def open_render_context(preset, seed: int, change: bool, allow_fallback: bool, r
     k = intrinsics_of(preset)
     renderer = Renderer(k)
     try:
-        renderer.set_scene(structure_meshes(scene, library) + object_meshes(scene, library, library.textures["poster"]))
+        textures = SiteTextures(scene, library.textures["poster"], preset.identity.unique_pictures)
+        renderer.set_scene(structure_meshes(scene, library) + object_meshes(scene, library, textures))
     except Exception:
         renderer.close()
         raise

@@ -115,6 +115,7 @@ class SceneObject:
     blocks_laser: bool
     room: str
     texture: int = -1  # e.g. which poster picture; -1 = the model's own
+    label: str = ""  # what signage shows: a plate's "A104|Dr. M. Weber", a board's key (see sitegen.signage)
 
 
 @dataclass(frozen=True)
@@ -123,6 +124,16 @@ class Light:
     y: float
     z: float
     intensity: float
+
+
+@dataclass(frozen=True)
+class Wing:
+    """A zone of the floor with its own letter (room numbers) and colour scheme (paint, floors, signs)."""
+
+    letter: str
+    rect: Rect
+    colour: tuple[float, float, float]
+    floor_material: int
 
 
 @dataclass
@@ -137,6 +148,15 @@ class Scene:
     wall_height: float
     classes: tuple[str, ...]
     closed: list[Rect] = field(default_factory=list)  # regions nobody enters (service cores): unknown in the map
+    wings: list[Wing] = field(default_factory=list)  # identity zones (`sitegen.identity`); empty: one plain floor
+    paint: dict[str, tuple[float, float, float]] = field(default_factory=dict)  # room name -> its walls' tint
+    outside_views: bool = False  # window panes show the facade's outside view instead of flat glass
+
+    def wing_at(self, x: float, y: float) -> Wing | None:
+        for wing in self.wings:
+            if wing.rect.contains(x, y):
+                return wing
+        return min(self.wings, key=lambda w: (w.rect.cx - x) ** 2 + (w.rect.cy - y) ** 2) if self.wings else None
 
     def objects_of(self, cls: str) -> list[SceneObject]:
         return [o for o in self.objects if o.cls == cls]

@@ -81,7 +81,8 @@ def build_scene(preset: SitePreset, seed: int, change: bool):
 
     scene = furnish_scene(generate_plan(preset, seed), preset, seed)
     if change:
-        scene = change_scene(scene, seed, poster_pictures=preset.furnishing.poster_pictures)
+        scene = change_scene(scene, seed, poster_pictures=preset.furnishing.poster_pictures,
+                             unique_pictures=preset.identity.unique_pictures)
     return scene
 
 
@@ -265,7 +266,11 @@ def write_contact_sheet(path: Path, root: Path, images: list[dict], anns: list[d
 
 
 def _attribution_md(library) -> str:
-    lines = ["# Attribution of the 3D models and textures used in this site", ""]
+    lines = ["# Attribution of the 3D models and textures used in this site", "",
+             "Wall pictures, room plates, signs, notice boards and escape plans are drawn by siteloc "
+             "(`pipeline.sitegen.pictures`, `pipeline.sitegen.signage`; CC0), partly from crops of the "
+             "photographs listed below; their text is set in DejaVu Sans / Serif / Mono (matplotlib's copy; "
+             "Bitstream Vera licence, public domain changes).", ""]
     if library.procedural:
         lines += ["Some classes use procedural fallback shapes: " + ", ".join(library.missing), ""]
     lines += ["| asset | creator | licence | source |", "| --- | --- | --- | --- |"]

@@ -21,7 +21,7 @@ def scene_of(name: str, seed: int = 0):
     return furnish_scene(generate_plan(preset, seed), preset, seed)
 
 
-@pytest.mark.parametrize("name", ["tiny", "office", "paper"])
+@pytest.mark.parametrize("name", ["tiny", "office", "twins", "paper"])
 def test_presets_build_and_every_class_is_present(name):
     scene = scene_of(name)
     counts = scene.class_counts()

@@ -31,6 +31,11 @@ pytestmark = pytest.mark.skipif(not egl_available(), reason="no headless EGL con
 MICRO = {
     "floor.size": [14.0, 13.0], "floor.band_depth": 3.2, "stops.spacing": 2.5, "camera.width": 96,
     "camera.height": 72, "runs.steps_per_run": 14, "runs.kidnaps_per_query_run": 1,
+    # Every identity cue, so the capture contract, boxes and change are checked with them.
+    "identity.wings": 2, "identity.wing_colours": True, "identity.room_plates": True,
+    "identity.unique_pictures": True, "identity.notice_boards": True, "identity.escape_plans": True,
+    "identity.signs": True, "identity.room_types": True, "identity.desk_clutter": True,
+    "identity.outside_views": True,
 }
 
 
@@ -134,6 +139,7 @@ def test_stops_and_views_as_specified(site):
 def test_boxes_agree_with_a_fresh_instance_buffer(site):
     """Re-render some views and derive each box independently from the id buffer (min/max of its pixels)."""
     from pipeline.sitegen.assets import load_assets
+    from pipeline.sitegen.decals import SiteTextures
     from pipeline.sitegen.geometry import object_meshes, structure_meshes
     from pipeline.sitegen.render import Lighting, Renderer
     from pipeline.sitegen.synth import build_scene, intrinsics_of
@@ -152,7 +158,8 @@ def test_boxes_agree_with_a_fresh_instance_buffer(site):
     pose_of = {r["image"]: (float(r["x"]), float(r["y"]), preset.camera.height_m, float(r["theta"]))
                for r in captures(site)}
     busiest = sorted(coco["images"], key=lambda im: -len(anns.get(im["id"], [])))[:8]
-    meshes = structure_meshes(scene, library) + object_meshes(scene, library, library.textures["poster"])
+    textures = SiteTextures(scene, library.textures["poster"], preset.identity.unique_pictures)
+    meshes = structure_meshes(scene, library) + object_meshes(scene, library, textures)
     checked = 0
     with Renderer(intrinsics_of(preset)) as renderer:
         renderer.set_scene(meshes)
