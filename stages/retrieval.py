@@ -129,11 +129,15 @@ def query(
         bad = [p for p in images if not p.is_file()]
         if bad:
             raise InputError("images not found", [Problem(str(p), "no such file") for p in bad])
+        from pipeline.retrieval.backbones import check_backbone, load_backbone, recorded_backbone
+
         rdb = load_database(index, index=r.index)
         det = load_detector(model, device=r.device)
+        backbone = load_backbone(r.backbone, r.backbone_weights)  # the one the index was extracted with, or refused
+        check_backbone(recorded_backbone(index), backbone, index)
         answers = {}
         for path in images:
-            d = describe(det, [load_image(path)], r.rpa_proposals, r.rpa_min_score)[0]
+            d = describe(det, [load_image(path)], r.rpa_proposals, r.rpa_min_score, backbone=backbone)[0]
             res = query_database(rdb, d.ipa, d.rpa[d.query_rows(r.query_regions)], top_n=r.top_n,
                                  weights=tuple(r.candidate_weights), rerank=r.rerank)
             answers[str(path)] = [{"image_id": rdb.db.image_ids[int(i)], "x": float(c[0]), "y": float(c[1]),

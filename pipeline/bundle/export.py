@@ -4,7 +4,9 @@ Inputs: the ingest (map, site.yaml: laser geometry and camera), the trained dete
 database of `build-index`; optionally a `train-sequence` output, whose LSTM, frame encoder and sequence
 database make the bundle able to re-localize from image sequences (`pipeline.runtime.sequence`).
 The detector goes to ONNX (`pipeline.detection.onnx_export`) and is checked against torch on
-`export.parity_images` of the site's images before anything is published; the
+`export.parity_images` of the site's images before anything is published; with a retrieval backbone other
+than the detector (`retrieval.backbone`, which must be the one the index was extracted with) the same
+graph holds that backbone too, checked alike, and describer.json records it (`retrieval_backbone`); the
 database files are copied as they are (whitened, float32); `filter.yaml` carries the filter, retrieval
 and laser settings the runtime needs; `manifest.json` is written last with every file's sha256 and size.
 The layout and the checks the runtime makes are in `pipeline.runtime.bundle`.
@@ -190,6 +192,10 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
     det = load_detector(model, device="cpu")
     db_report = json.loads((index / "report.json").read_text())
     r = cfg.retrieval
+    from pipeline.retrieval.backbones import check_backbone, load_backbone, recorded_backbone
+
+    backbone = load_backbone(r.backbone, r.backbone_weights)  # None: the detector's own map
+    check_backbone(recorded_backbone(index), backbone, index)
     with atomic_dir(out, force=force) as tmp:
         (tmp / "map").mkdir()
         write_map(tmp / "map" / "map.yaml", read_map(data / "map.yaml"), "map.pgm")
@@ -198,12 +204,12 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
             if (index / f).is_file():
                 shutil.copyfile(index / f, tmp / "db" / f)
         (tmp / "models").mkdir()
-        meta = export_describer(det, image_hw, tmp / "models" / "describer.onnx")
+        meta = export_describer(det, image_hw, tmp / "models" / "describer.onnx", backbone=backbone)
         meta.update(rpa_proposals=r.rpa_proposals, rpa_min_score=r.rpa_min_score,
                     backbone=det.config["builder"]["backbone"],
                     classes=det.config.get("classes"))
         meta["parity"] = check_parity(det, tmp / "models" / "describer.onnx", meta, images,
-                                      rpa_proposals=r.rpa_proposals, rpa_min_score=r.rpa_min_score)
+                                      rpa_proposals=r.rpa_proposals, rpa_min_score=r.rpa_min_score, backbone=backbone)
         write_text_atomic(tmp / "models" / "describer.json", json.dumps(meta, indent=2) + "\n")
         if inputs.get("sequence") is not None:
             export_sequence(cfg, Path(inputs["sequence"]), tmp, images)

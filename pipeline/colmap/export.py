@@ -1,8 +1,9 @@
 """`export-colmap`: a site's views as a posed COLMAP model (no 3D points), written by pycolmap.
 
 The model has one rig of one camera per view index: a rig sensor is a camera id in COLMAP, so view k uses
-camera k + 1, all with the site's PINHOLE intrinsics (principal point + 0.5 px: COLMAP puts pixel centres at
-integer + 0.5, siteloc at integers). Each stop is one frame whose rig pose is the stop's mean position at
+camera k + 1, all with the site's intrinsics (principal point + 0.5 px: COLMAP puts pixel centres at
+integer + 0.5, siteloc at integers): PINHOLE, or OPENCV when site.yaml gives a distortion (FULL_OPENCV if its
+k3 is not zero). Each stop is one frame whose rig pose is the stop's mean position at
 `camera_height` and its mean heading; the rig's sensors turn by `rig.yaw_offsets_deg`, so an image's pose is
 the nominal rig pose (captured headings agree with it within `ingest.heading_tolerance_deg`). Image names
 are relative to SITE_DIR/images when every image lies there, else to SITE_DIR. Triangulating points from
@@ -23,7 +24,7 @@ from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem, Problems
 from pipeline.io.atomic import atomic_dir
 from pipeline.io.captures import CaptureRow, check_stops, read_captures
-from pipeline.io.site import Site, read_site
+from pipeline.io.site import Camera, Site, read_site
 from pipeline.runtime.motion import wrap_angle
 
 RIG_ID = 1
@@ -76,20 +77,27 @@ def image_names(rows: list[CaptureRow]) -> tuple[str, dict[str, str]]:
     return ".", {r.image: r.image for r in rows}
 
 
+def colmap_camera(cam: Camera) -> tuple[str, list[float]]:
+    """COLMAP's model and parameters of site.yaml's camera: PINHOLE, or OPENCV for a plumb_bob distortion
+    (FULL_OPENCV with k4 = k5 = k6 = 0 when k3 is not zero: the same model)."""
+    pinhole = [cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5]
+    if cam.distortion is None:
+        return "PINHOLE", pinhole
+    k1, k2, p1, p2, k3 = cam.distortion.coeffs
+    if k3 == 0:
+        return "OPENCV", pinhole + [k1, k2, p1, p2]
+    return "FULL_OPENCV", pinhole + [k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]
+
+
 def build_reconstruction(site: Site, rows: list[CaptureRow], names: dict[str, str], camera_height: float):
     """The pycolmap.Reconstruction of the views: cameras 1..n_views, rig 1, one registered frame per stop."""
     rec = pycolmap.Reconstruction()
     cam = site.camera
     offsets = site.rig.yaw_offsets
+    model, params = colmap_camera(cam)
     for view in range(len(offsets)):
         rec.add_camera(
-            pycolmap.Camera(
-                camera_id=view + 1,
-                model="PINHOLE",
-                width=cam.width,
-                height=cam.height,
-                params=[cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5],
-            )
+            pycolmap.Camera(camera_id=view + 1, model=model, width=cam.width, height=cam.height, params=params)
         )
     rig = pycolmap.Rig(rig_id=RIG_ID)
     rig.add_ref_sensor(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, 1))

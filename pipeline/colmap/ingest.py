@@ -5,6 +5,8 @@ one rig frame is one stop when the model has frames of several images, else imag
 `ingest.position_tolerance_m` form a stop. Stops without exactly one image per rig view, or whose headings
 disagree with the rig, are listed in report.json and left out of captures.csv. Every problem with the inputs
 is reported at once before anything is written; the output appears only when complete (`atomic_dir`).
+site.yaml holds the model's one camera: radial and OpenCV models keep their coefficients as its plumb_bob
+`distortion` (the images are linked as they are, not undistorted).
 """
 
 from __future__ import annotations
@@ -29,10 +31,20 @@ from pipeline.errors import InputError, Problem, Problems
 from pipeline.io.atomic import atomic_dir, write_text_atomic
 from pipeline.io.captures import site_relative
 from pipeline.io.map_yaml import OCCUPIED, OccupancyMap, read_map, write_map
-from pipeline.io.site import Camera, Site, validation_problems, write_site
+from pipeline.io.site import Camera, Distortion, Site, validation_problems, write_site
 from pipeline.runtime.motion import wrap_angle
 
-SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+# COLMAP models site.yaml can hold, and where their parameters go: (fx, fy, cx, cy), then plumb_bob's
+# (k1, k2, p1, p2, k3) by parameter index (None: 0; fy of a one-focal model is its f).
+CAMERA_PARAMS = {
+    "SIMPLE_PINHOLE": ((0, 0, 1, 2), None),
+    "PINHOLE": ((0, 1, 2, 3), None),
+    "SIMPLE_RADIAL": ((0, 0, 1, 2), (3, None, None, None, None)),
+    "RADIAL": ((0, 0, 1, 2), (3, 4, None, None, None)),
+    "OPENCV": ((0, 1, 2, 3), (4, 5, 6, 7, None)),
+    "FULL_OPENCV": ((0, 1, 2, 3), (4, 5, 6, 7, 8)),  # only with k4 = k5 = k6 = 0 (params 9-11): plumb_bob
+}
+SUPPORTED_MODELS = tuple(CAMERA_PARAMS)
 MODEL_FILES = ("cameras", "images", "points3D")
 INTRINSICS_TOL_PX = 1e-3  # cameras of one model must agree this well: site.yaml holds one camera
 MAX_LISTED = 10  # missing images listed one by one before "and N more"
@@ -86,30 +98,32 @@ def read_model(model_dir: Path) -> pycolmap.Reconstruction:
 
 
 def site_camera(rec: pycolmap.Reconstruction, camera_ids: set[int], where: Path, problems: Problems) -> Camera | None:
-    """The one pinhole camera of site.yaml, from the model's cameras (pixel centres moved from +0.5 to 0)."""
+    """The one camera of site.yaml, from the model's cameras (pixel centres moved from +0.5 to 0); a radial
+    or OpenCV model becomes its plumb_bob distortion."""
     found: dict[int, tuple[float, ...]] = {}
     for cid in sorted(camera_ids):
         cam = rec.camera(cid)
-        if cam.model_name not in SUPPORTED_MODELS:
+        params = [float(p) for p in cam.params]
+        if cam.model_name not in CAMERA_PARAMS or (cam.model_name == "FULL_OPENCV" and any(params[9:])):
+            what = "a FULL_OPENCV camera with k4, k5, k6 not zero" if cam.model_name == "FULL_OPENCV" else (
+                f"a {cam.model_name} camera")
             problems.add(
                 where,
-                f"camera {cid} is a {cam.model_name} camera; supported models: {', '.join(SUPPORTED_MODELS)}",
+                f"camera {cid} is {what}; supported models: {', '.join(SUPPORTED_MODELS)} (k4 = k5 = k6 = 0)",
                 fix="undistort the model first: colmap image_undistorter --image_path IMAGES --input_path MODEL "
                 "--output_path UNDIST, then pass UNDIST/sparse and --images UNDIST/images",
             )
             continue
-        found[cid] = (
-            cam.width,
-            cam.height,
-            cam.focal_length_x,
-            cam.focal_length_y,
-            cam.principal_point_x - 0.5,
-            cam.principal_point_y - 0.5,
-        )
+        focal, dist = CAMERA_PARAMS[cam.model_name]
+        fx, fy, cx, cy = (params[i] for i in focal)
+        coeffs = (0.0,) * 5 if dist is None else tuple(0.0 if i is None else params[i] for i in dist)
+        found[cid] = (cam.width, cam.height, fx, fy, cx - 0.5, cy - 0.5, *coeffs)
     if not found:
         return None
     first_id, first = next(iter(found.items()))
-    differ = [cid for cid, k in found.items() if np.max(np.abs(np.subtract(k, first))) > INTRINSICS_TOL_PX]
+    # Intrinsics compared in pixels, coefficients scaled by the image size (about the pixels they move an edge).
+    scale = np.r_[np.ones(6), np.full(5, max(first[0], first[1]))]
+    differ = [cid for cid, k in found.items() if np.max(np.abs(np.subtract(k, first)) * scale) > INTRINSICS_TOL_PX]
     if differ:
         problems.add(
             where,
@@ -117,8 +131,9 @@ def site_camera(rec: pycolmap.Reconstruction, camera_ids: set[int], where: Path,
             fix="capture with one camera model, or ingest each camera's images as its own site",
         )
         return None
-    w, h, fx, fy, cx, cy = first
-    return Camera(width=int(w), height=int(h), fx=fx, fy=fy, cx=cx, cy=cy)
+    w, h, fx, fy, cx, cy, *coeffs = first
+    distortion = Distortion(coeffs=tuple(coeffs)) if any(coeffs) else None
+    return Camera(width=int(w), height=int(h), fx=fx, fy=fy, cx=cx, cy=cy, distortion=distortion)
 
 
 def group_stops(rec: pycolmap.Reconstruction, views: list[View], site: Site, tol_m: float) -> tuple[list[Stop], str]:

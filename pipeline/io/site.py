@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, model_validator
 
 from pipeline.errors import InputError, Problem
 
@@ -17,8 +18,18 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+class Distortion(_Strict):
+    """Lens distortion of the images: ROS's plumb_bob, OpenCV's 5-coefficient radial-tangential model.
+
+    coeffs are (k1, k2, p1, p2, k3) in that order (CameraInfo's D, OpenCV's distCoeffs), on normalised
+    coordinates ((u - cx) / fx, (v - cy) / fy) of the camera's fx, fy, cx, cy."""
+
+    model: Literal["plumb_bob"] = "plumb_bob"
+    coeffs: tuple[FiniteFloat, ...] = Field(min_length=5, max_length=5, description="k1, k2, p1, p2, k3")
+
+
 class Camera(_Strict):
-    """Pinhole intrinsics of the capture camera, in pixels."""
+    """Intrinsics of the capture camera, in pixels: pinhole, or pinhole plus `distortion` when given."""
 
     width: int = Field(gt=0)
     height: int = Field(gt=0)
@@ -26,6 +37,7 @@ class Camera(_Strict):
     fy: float = Field(gt=0)
     cx: float
     cy: float
+    distortion: Distortion | None = None
 
 
 class Rig(_Strict):

@@ -3,7 +3,9 @@
 `run_build_index` fits the configured whitening (`retrieval.whitening`: pca, learned or none) on the
 database images of an extraction (the ingest's `train` stops), applies it, and writes into its output:
 `database_ipa.parquet` and `database_rpa.parquet` (whitened, l2-normalised), `catalog.parquet` (poses),
-`ipa_whitening.npz` / `rpa_whitening.npz` (arrays only) and `config.yaml`.
+`ipa_whitening.npz` / `rpa_whitening.npz` (arrays only) and `config.yaml`. An extraction with a retrieval
+backbone other than the detector's map has its record copied into report.json (`retrieval_backbone`), so
+`query` and `export` describe new images with the same backbone (`backbones.check_backbone`).
 
 `load_database(dir)` reads it back (numpy and pyarrow only) and `query_database` answers one query from
 its raw (unwhitened) IPA and region descriptors with the two-stage retrieval of `search`.
@@ -46,7 +48,10 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
     out = Path(outputs["out"])
     if out.exists() and not force:
         raise OutputExistsError(out)
+    from pipeline.retrieval.backbones import recorded_backbone
+
     ex = load_extracted(Path(inputs["descriptors"]))
+    backbone = recorded_backbone(Path(inputs["descriptors"]))
     db, _ = split_database_queries(ex)
     w_ipa, w_rpa = fit_whitenings(ex, db, r.whitening, r)
     database = whitened_database(ex, db, w_ipa, w_rpa)
@@ -68,7 +73,8 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
             "images": len(ids), "regions": int(len(rpa)), "whitening": r.whitening,
             "ipa_dim": int(ipa.shape[1]), "rpa_dim": int(rpa.shape[1]),
             "ipa_dim_limited_by": None if w_ipa is None else str(w_ipa.cap_reason_),
-            "rpa_dim_limited_by": None if w_rpa is None else str(w_rpa.cap_reason_)}, indent=2) + "\n")
+            "rpa_dim_limited_by": None if w_rpa is None else str(w_rpa.cap_reason_),
+            **({"retrieval_backbone": backbone} if backbone else {})}, indent=2) + "\n")
         write_effective_config(cfg, tmp, stage="build-index", inputs=inputs)
     return out
 

@@ -4,6 +4,10 @@ runtime (ONNX), so that the database and a robot's camera image are described by
 - IPA: the stride-16 map (cropped to the image) summed over positions, l2-normalised.
 - RPA: per region, each channel's maximum over the map cells the box touches, l2-normalised. Regions:
   the `rpa_proposals` best RPN proposals, then the detections scoring at least `rpa_min_score`.
+
+The map is the detector's, or that of the retrieval backbone (`retrieval.backbone`,
+`pipeline.retrieval.backbones`), computed on the original image at its own stride; with a
+place-recognition head the IPA is the head's output (`global_descriptor`) instead of the sum.
 """
 
 from __future__ import annotations
@@ -55,9 +59,12 @@ class ImageDescriptors:
 
 def describe_outputs(feature_map: np.ndarray, scale: tuple[float, float], stride: float, proposals: np.ndarray,
                      proposal_scores: np.ndarray, boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, *,
-                     rpa_proposals: int, rpa_min_score: float) -> ImageDescriptors:
-    """Descriptors of one image from the detector's outputs: the cropped (C, h, w) map, `scale` (resized
-    over original, y then x), and proposals / detections in original pixels."""
+                     rpa_proposals: int, rpa_min_score: float,
+                     global_descriptor: np.ndarray | None = None) -> ImageDescriptors:
+    """Descriptors of one image from the detector's outputs: the cropped (C, h, w) map, `scale` (the map's
+    image over the original, y then x), and proposals / detections in original pixels. With a retrieval
+    backbone, `feature_map` is its map (of the original image: scale 1, its stride) and `global_descriptor`
+    a head's output, which is then the IPA (l2-normalised)."""
     top = np.argsort(-np.asarray(proposal_scores), kind="stable")[:rpa_proposals]
     keep = np.asarray(scores) >= rpa_min_score
     regions = np.vstack([np.asarray(proposals, np.float32).reshape(-1, 4)[top],
@@ -67,4 +74,18 @@ def describe_outputs(feature_map: np.ndarray, scale: tuple[float, float], stride
                                                             strict=True)]
     sy, sx = scale
     pooled = region_max(feature_map, regions * np.float32([sx, sy, sx, sy]), stride)
-    return ImageDescriptors(ipa_descriptor(feature_map), regions, meta, l2_normalize(pooled))
+    ipa = ipa_descriptor(feature_map) if global_descriptor is None else l2_normalize(
+        np.asarray(global_descriptor, dtype=np.float32).reshape(-1))
+    return ImageDescriptors(ipa, regions, meta, l2_normalize(pooled))
+
+
+def describe_graph_outputs(out, meta: dict, *, rpa_proposals: int, rpa_min_score: float) -> ImageDescriptors:
+    """`describe_outputs` of the describer graph's outputs in order (`feature_map`, `proposals`,
+    `proposal_scores`, `boxes`, `scores`, `labels`, then, when `meta` (describer.json) has a
+    `retrieval_backbone`, its `backbone_map` and, with a head, `backbone_ipa`)."""
+    rb = meta.get("retrieval_backbone")
+    if rb is None:
+        return describe_outputs(out[0], tuple(meta["scale"]), meta["stride"], *out[1:6], rpa_proposals=rpa_proposals,
+                                rpa_min_score=rpa_min_score)
+    return describe_outputs(out[6], (1.0, 1.0), rb["stride"], *out[1:6], rpa_proposals=rpa_proposals,
+                            rpa_min_score=rpa_min_score, global_descriptor=out[7] if len(out) > 7 else None)

@@ -171,6 +171,14 @@ def run_evaluate_retrieval(cfg: SitelocConfig, *, inputs: dict[str, Path], outpu
             raise InputError("the two extractions have different descriptor sizes",
                              [Problem(str(inputs["query_descriptors"]), f"{qx.ipa.shape[1]}-d, database "
                                       f"{ex.ipa.shape[1]}-d", fix="extract both with the same detector")])
+        from pipeline.retrieval.backbones import recorded_backbone
+
+        a, b = (recorded_backbone(Path(inputs[k])) or {} for k in ("descriptors", "query_descriptors"))
+        if (a.get("name", "detector"), a.get("weights_sha256")) != (b.get("name", "detector"), b.get("weights_sha256")):
+            raise InputError("the two extractions pool the maps of different retrieval backbones",
+                             [Problem(str(inputs["query_descriptors"]), f"{b.get('name', 'detector')}, database "
+                                      f"{a.get('name', 'detector')}", fix="extract both with the same "
+                                      "retrieval.backbone and retrieval.backbone_weights")])
     if len(db) < 2 or len(queries) == 0:
         raise InputError(f"{inputs['descriptors']}: {len(db)} database and {len(queries)} query images",
                          [Problem(str(Path(inputs["descriptors"]) / "catalog.parquet"),

@@ -6,6 +6,13 @@
   touches, l2-normalised. Regions: the `rpa_proposals` best RPN proposals and the detections scoring at
   least `rpa_min_score` (boxes, scores and classes are kept).
 
+`retrieval.backbone` other than `detector` (`pipeline.retrieval.backbones`): the regions still come from
+the detector, but IPA and RPA pool that backbone's map of the original image (at its stride), and with a
+checkpoint's NetVLAD / GeM head the IPA is the head's output. Both engines support every backbone: the
+ONNX graph then holds the detector and the backbone, checked against torch alike. The backbone's record
+(name, sizes, weights and their sha256) goes to report.json and the tables' metadata; `build-index`,
+`query` and `export` refuse to mix backbones.
+
 On a CPU (`retrieval.engine: auto`) the images are described through onnxruntime: the detector is exported
 as the graph the bundle carries (`pipeline.detection.onnx_export`), checked against torch on the first
 images of each size (export's tolerances; the report keeps the figures), and run in several threads, so the
@@ -62,19 +69,28 @@ def site_images(ingested: Path, *, include_runs: bool) -> list[ImageRecord]:
     return out
 
 
-def describe(det, images: list, rpa_proposals: int, rpa_min_score: float) -> list[ImageDescriptors]:
-    """IPA and RPA descriptors of a batch of (3, H, W) images in [0, 1] from one detector pass."""
+def describe(det, images: list, rpa_proposals: int, rpa_min_score: float, *,
+             backbone=None) -> list[ImageDescriptors]:
+    """IPA and RPA descriptors of a batch of (3, H, W) images in [0, 1] from one detector pass; with a
+    `backbone` (`pipeline.retrieval.backbones.RetrievalBackbone`) pooling its map of each image."""
     from pipeline.detection.builders import STRIDE
     from pipeline.detection.inference import detector_features
 
-    return [describe_outputs(f.feature_map.numpy(), f.scale, STRIDE, f.proposals, f.proposal_scores, f.boxes,
-                             f.scores, f.labels, rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score)
-            for f in detector_features(det, images)]
+    feats = detector_features(det, images)
+    if backbone is None:
+        return [describe_outputs(f.feature_map.numpy(), f.scale, STRIDE, f.proposals, f.proposal_scores, f.boxes,
+                                 f.scores, f.labels, rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score)
+                for f in feats]
+    maps = backbone.to(det.device).describe_maps(images)
+    return [describe_outputs(m, (1.0, 1.0), backbone.stride, f.proposals, f.proposal_scores, f.boxes, f.scores,
+                             f.labels, rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score, global_descriptor=g)
+            for f, (m, g) in zip(feats, maps, strict=True)]
 
 
 def onnx_describer(det, workdir: Path, *, rpa_proposals: int, rpa_min_score: float, samples: int,
-                   layout: tuple[int, int] | None = None):
-    """A `SizedGraphPool` describing image files through the detector's exported ONNX graph."""
+                   layout: tuple[int, int] | None = None, backbone=None):
+    """A `SizedGraphPool` describing image files through the detector's exported ONNX graph (holding the
+    retrieval `backbone` too, when given)."""
     import torch
 
     from pipeline.detection.onnx_export import check_parity, export_describer
@@ -82,10 +98,10 @@ def onnx_describer(det, workdir: Path, *, rpa_proposals: int, rpa_min_score: flo
     from pipeline.runtime.describer import describe_with
 
     def build(hw: tuple[int, int], images: list, path: Path) -> dict:
-        meta = export_describer(det, hw, path)
+        meta = export_describer(det, hw, path, backbone=backbone)
         meta.update(rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score)
         meta["parity"] = check_parity(det, path, meta, [torch.from_numpy(im) for im in images],
-                                      rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score)
+                                      rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score, backbone=backbone)
         return meta
 
     return SizedGraphPool("describer", workdir, build, describe_with, samples=samples, layout=layout)
@@ -122,11 +138,15 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
                          [Problem(str(ingested / m), "file is missing", fix="re-run `siteloc ingest`")
                           for m in missing[:10]])
     from pipeline.onnx_threads import resolve_engine
+    from pipeline.retrieval.backbones import load_backbone
 
     det = load_detector(model_dir, device=r.device)
+    backbone = load_backbone(r.backbone, r.backbone_weights)  # None: the detector's own map
     engine = resolve_engine(r.engine, det.device.type)
     settings = {"rpa_proposals": r.rpa_proposals, "rpa_min_score": r.rpa_min_score, "chunk": r.chunk,
                 "include_runs": r.include_runs, "engine": engine}
+    if backbone is not None:  # (absent for the detector: its fingerprints, and so resumable runs, stay as they were)
+        settings["backbone"] = {"name": backbone.name, "weights_sha256": backbone.weights_sha256}
     fingerprint = _fingerprint(model_dir, images, settings)
     partial = out.with_name(out.name + ".partial")
     plan = partial / "plan.json"
@@ -139,7 +159,7 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
     pool = None
     if engine == "onnx":
         pool = onnx_describer(det, partial, rpa_proposals=r.rpa_proposals, rpa_min_score=r.rpa_min_score,
-                              samples=cfg.export.parity_images)
+                              samples=cfg.export.parity_images, backbone=backbone)
         step = 4 * pool.workers
 
         def describe_batch(batch: list[ImageRecord]) -> list[ImageDescriptors]:
@@ -149,7 +169,7 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
 
         def describe_batch(batch: list[ImageRecord]) -> list[ImageDescriptors]:
             return describe(det, [load_image(ingested / rec.image_id) for rec in batch], r.rpa_proposals,
-                            r.rpa_min_score)
+                            r.rpa_min_score, backbone=backbone)
     where = "onnxruntime, cpu" if pool else det.device.type
     bar = progress_bar(total=len(images), desc=f"extracting ({where})", unit="img", enabled=progress)
     try:
@@ -162,6 +182,12 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
                                       for k in range(len(chunks))]) for kind in ("ipa", "rpa")}
     dim = merged["ipa"].schema.field("descriptor").type.list_size
     meta = {"backbone": det.config["builder"]["backbone"], "model": str(model_dir), "dim": str(dim)}
+    record = None
+    if backbone is not None:
+        record = backbone.record()
+        if int(dim) != record["dim"]:
+            raise SitelocError(f"{r.backbone}: descriptors of {dim} values, its record says {record['dim']}")
+        meta["retrieval_backbone"] = json.dumps(record)
     with atomic_dir(out, force=force) as tmp:
         for kind, table in merged.items():
             tables.write_table(tmp / f"{kind}.parquet", table, kind, meta)
@@ -171,6 +197,7 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
             "run_images": sum(i.split.startswith("run:") for i in images), "ipa_dim": int(dim),
             "regions": merged["rpa"].num_rows,
             "backbone": meta["backbone"], "device": str(det.device), "engine": engine,
+            **({"retrieval_backbone": record} if record else {}),
             # Present when this run exported graphs: a resumed extraction whose chunks are all done has none.
             **({"onnx": {"workers": pool.workers, "threads_per_worker": pool.threads, "graphs": pool.graphs}}
                if pool is not None and pool.graphs else {})}, indent=2) + "\n")

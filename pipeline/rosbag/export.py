@@ -4,9 +4,10 @@
 each stop turns through the rig's headings, pausing 1 s at each view while the camera fires; its
 odometry is synthesised with the filter's motion-model noise. Every run of `runs/` becomes a bag of its
 own with its recorded odometry, scans and frames. Topics: /camera/image_raw/compressed,
-/camera/camera_info, /scan, /odom, /tf (odom -> base_link from the odometry, map -> odom from the
-ground truth, as a localization system would publish it), /tf_static and /map (latched). The odometry
-and tf run at 20 Hz (interpolated between a run's steps); scans and frames at the run's own rate.
+/camera/camera_info (plumb_bob; D is site.yaml's distortion, else zero), /scan, /odom, /tf (odom ->
+base_link from the odometry, map -> odom from the ground truth, as a localization system would publish
+it), /tf_static and /map (latched). The odometry and tf run at 20 Hz (interpolated between a run's
+steps); scans and frames at the run's own rate.
 """
 
 from __future__ import annotations
@@ -116,7 +117,7 @@ def _image(w: BagWriter, root: Path, rel: str, stamp: float, camera, seq: int) -
             msgs.compressed_image(stamp, FRAMES["camera"], data, image_format(data, rel), seq=seq))
     w.write(TOPICS["camera_info"], stamp + LATENCY["image"],
             msgs.camera_info(stamp, FRAMES["camera"], camera.width, camera.height, camera.fx, camera.fy, camera.cx,
-                             camera.cy, seq=seq))
+                             camera.cy, seq=seq, d=None if camera.distortion is None else camera.distortion.coeffs))
 
 
 def _topics(w: BagWriter, scans: bool) -> None:

@@ -4,8 +4,9 @@ Each recording is one drive. Its camera frames give the capture stops (`pipeline
 when it has laser scans, it becomes `runs/<name>/`: one step per scan with the odometry (odom ->
 base_link) and the reference (map -> base_link through tf) interpolated at the scan's stamp, and the
 camera frame nearest in time (within `sync_tolerance`). A step whose reference jumps against the
-odometry by more than `kidnap_jump_m` is flagged kidnapped. site.yaml comes from CameraInfo, the first
-scan and tf_static; the map from `/map` or `map_yaml`. What is dropped, and why, is in bag_report.json.
+odometry by more than `kidnap_jump_m` is flagged kidnapped. site.yaml comes from CameraInfo (K, and a
+plumb_bob D as the camera's distortion), the first scan and tf_static; the map from `/map` or `map_yaml`.
+What is dropped, and why, is in bag_report.json.
 """
 
 from __future__ import annotations

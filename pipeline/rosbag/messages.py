@@ -106,12 +106,14 @@ class Messages:
                           is_bigendian=0, step=w * channels, data=np.ascontiguousarray(pixels).ravel())
 
     def camera_info(self, stamp: float, frame_id: str, width: int, height: int, fx: float, fy: float, cx: float,
-                    cy: float, seq: int = 0):
+                    cy: float, seq: int = 0, d=None):
+        """A plumb_bob CameraInfo; `d` its (k1, k2, p1, p2, k3), zero (rectified) when not given."""
         k = np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], dtype=np.float64)
         p = np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0], dtype=np.float64)
         roi = self.T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        d = np.zeros(5) if d is None else np.asarray(d, dtype=np.float64)
         return self._make(CAMERA_INFO, header=self.header(stamp, frame_id, seq), height=height, width=width,
-                          distortion_model="plumb_bob", d=np.zeros(5), k=k, r=np.eye(3).ravel(), p=p,
+                          distortion_model="plumb_bob", d=d, k=k, r=np.eye(3).ravel(), p=p,
                           binning_x=0, binning_y=0, roi=roi)
 
     def scan(self, stamp: float, frame_id: str, ranges: np.ndarray, angle_min: float, angle_increment: float,

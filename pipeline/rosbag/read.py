@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import InputError, Problem
-from pipeline.io.site import Camera
+from pipeline.io.site import Camera, Distortion
 from pipeline.rosbag.bagfile import bag_name, messages, open_reader
 from pipeline.rosbag.messages import CAMERA_INFO, COMPRESSED, GRID, IMAGE, ODOMETRY, SCAN, TF, stamp_of
 from pipeline.rosbag.messages import field as msg_field
@@ -130,14 +130,21 @@ def _intrinsics(path: Path, topic: str, index: int, msg) -> Camera:
     if k.size != 9 or k[0] <= 0 or k[4] <= 0:
         _fail(path, topic, f"camera matrix K {k.tolist()} has no focal length",
               "the camera is not calibrated: calibrate it (camera_calibration) and record CameraInfo", index)
+    distortion = None
     if d.size and np.any(np.abs(d) > 1e-9):
-        _fail(path, topic, f"distortion D={np.round(d, 4).tolist()} is not zero: siteloc needs rectified images",
-              "record the rectified topic (image_rect, from image_proc) and its CameraInfo", index)
+        model = str(msg_field(msg, "distortion_model"))
+        plumb_bob = (model == "plumb_bob" and d.size == 5) or (
+            model == "rational_polynomial" and d.size == 8 and not np.any(np.abs(d[5:]) > 1e-9))
+        if not plumb_bob:
+            _fail(path, topic, f"distortion model '{model}' with D={np.round(d, 4).tolist()}: siteloc reads "
+                  "plumb_bob (5 coefficients, or rational_polynomial with k4 = k5 = k6 = 0) or rectified images",
+                  "record the rectified topic (image_rect, from image_proc) and its CameraInfo", index)
+        distortion = Distortion(coeffs=tuple(float(c) for c in d[:5]))
     if msg.width <= 0 or msg.height <= 0:
         _fail(path, topic, f"CameraInfo says the image is {msg.width}x{msg.height}",
               "record the CameraInfo the camera driver publishes with its calibration", index)
     return Camera(width=int(msg.width), height=int(msg.height), fx=float(k[0]), fy=float(k[4]), cx=float(k[2]),
-                  cy=float(k[5]))
+                  cy=float(k[5]), distortion=distortion)
 
 
 def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dict[str, float] | None = None,

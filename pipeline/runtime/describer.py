@@ -1,4 +1,11 @@
-"""A camera image to IPA and RPA descriptors through the bundle's ONNX detector (onnxruntime, no torch)."""
+"""A camera image to IPA and RPA descriptors through the bundle's ONNX detector (onnxruntime, no torch).
+
+With a retrieval backbone other than the detector (`retrieval.backbone`), `describer.onnx` also holds that
+backbone (outputs `backbone_map`, and `backbone_ipa` with a NetVLAD / GeM head) and `describer.json` its
+record under `retrieval_backbone` (name, stride, dims, weights and their sha256, outputs): the camera image
+is described by the backbone the database was extracted with, through the same `describe_graph_outputs`
+as `extract`.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.retrieval.descriptors import ImageDescriptors, describe_outputs
+from pipeline.retrieval.descriptors import ImageDescriptors, describe_graph_outputs
 from pipeline.runtime.bundle import BundleError
 
 OUTPUTS = ("feature_map", "proposals", "proposal_scores", "boxes", "scores", "labels")
@@ -38,13 +45,17 @@ def camera_image(image, image_hw: tuple[int, int], graph: str) -> np.ndarray:
     return x
 
 
+def graph_outputs(meta: dict) -> list[str]:
+    """The outputs of the describer graph `meta` (its describer.json) describes images with."""
+    return [*OUTPUTS, *(meta.get("retrieval_backbone") or {}).get("outputs", [])]
+
+
 def describe_with(session, image: np.ndarray, meta: dict) -> ImageDescriptors:
     """IPA and RPA of one (3, H, W) image through an onnxruntime session of the detector graph, `meta` being
-    its describer.json (scale, stride, rpa_proposals, rpa_min_score). `extract` describes the database with
-    this too."""
-    out = session.run(list(OUTPUTS), {"image": image})
-    return describe_outputs(out[0], tuple(meta["scale"]), meta["stride"], *out[1:],
-                            rpa_proposals=meta["rpa_proposals"], rpa_min_score=meta["rpa_min_score"])
+    its describer.json (scale, stride, rpa_proposals, rpa_min_score, retrieval_backbone). `extract`
+    describes the database with this too."""
+    out = session.run(graph_outputs(meta), {"image": image})
+    return describe_graph_outputs(out, meta, rpa_proposals=meta["rpa_proposals"], rpa_min_score=meta["rpa_min_score"])
 
 
 class OnnxDescriber:
@@ -57,6 +68,11 @@ class OnnxDescriber:
             options.intra_op_num_threads = threads
         self.session = ort.InferenceSession(str(onnx_path), options, providers=["CPUExecutionProvider"])
         self.image_hw = tuple(self.meta["image_hw"])
+        self.backbone = self.meta.get("retrieval_backbone")  # None: the detector's own map
+        lacking = sorted(set(graph_outputs(self.meta)) - {o.name for o in self.session.get_outputs()})
+        if lacking:
+            raise BundleError(f"{onnx_path}: lacks the outputs {lacking} that {Path(meta_path).name} names; the "
+                              f"bundle's files do not belong together: export it again")
 
     def describe(self, image) -> ImageDescriptors:
         return describe_with(self.session, camera_image(image, self.image_hw, "detector"), self.meta)

@@ -22,6 +22,7 @@ from pipeline.colmap.export import run_export_colmap
 from pipeline.colmap.ingest import run_ingest_colmap
 from pipeline.errors import InputError, OutputExistsError
 from pipeline.ingest import run_ingest, validate_site_dir
+from pipeline.io.site import Distortion, read_site, write_site
 from stages.colmap import export_colmap, ingest_colmap
 from tests.colmap import CFG, angle_diff, random_sim3, read_rows, stops_of, trivial_frame_model, write_anchors
 from tests.fixtures.capture_site import site_yaml, write_capture_site
@@ -131,6 +132,37 @@ def test_export_then_ingest_in_map_frame_reproduces_captures(site, model_dir, tm
     assert any("anchor heading error" in w for w in rep["warnings"])
 
 
+@pytest.mark.parametrize("coeffs", [(-0.05, 0.01, 0.001, -0.002, 0.0), (-0.05, 0.01, 0.0, 0.0, 0.003)])
+def test_a_distorted_camera_goes_out_and_comes_back_with_its_coefficients(site, tmp_path, coeffs):
+    distorted = tmp_path / "site"
+    shutil.copytree(site, distorted)
+    plain = read_site(site / "site.yaml")
+    camera = plain.camera.model_copy(update={"distortion": Distortion(coeffs=coeffs)})
+    write_site(distorted / "site.yaml", plain.model_copy(update={"camera": camera}))
+    model = run_export_colmap(CFG, inputs={"site": distorted}, outputs={"out": tmp_path / "model"})
+    cam = pycolmap.Reconstruction(str(model)).camera(1)
+    if coeffs[4] == 0:
+        assert cam.model_name == "OPENCV"
+        np.testing.assert_allclose(cam.params, [40.0, 40.0, 32.5, 24.5, *coeffs[:4]])
+    else:
+        assert cam.model_name == "FULL_OPENCV"
+        np.testing.assert_allclose(cam.params, [40.0, 40.0, 32.5, 24.5, *coeffs, 0.0, 0.0, 0.0])
+    out = ingest(model, distorted, tmp_path / "out", in_map_frame=True, name="tiny")
+    back = read_site(out / "site.yaml")
+    assert back.camera == camera and back.camera.distortion.coeffs == coeffs
+
+
+def test_radial_models_become_a_plumb_bob_distortion(site, tmp_path):
+    model = write_model(trivial_frame_model(site, model="SIMPLE_RADIAL"), tmp_path / "model")  # k = 0.01
+    back = read_site(ingest(model, site, tmp_path / "out", in_map_frame=True) / "site.yaml")
+    assert (back.camera.fx, back.camera.fy, back.camera.cx, back.camera.cy) == (40.0, 40.0, 32.0, 24.0)
+    assert back.camera.distortion == Distortion(coeffs=(0.01, 0.0, 0.0, 0.0, 0.0))
+    pinhole = write_model(trivial_frame_model(site), tmp_path / "pinhole")
+    out = ingest(pinhole, site, tmp_path / "out2", in_map_frame=True)
+    assert read_site(out / "site.yaml").camera.distortion is None
+    assert "distortion" not in (out / "site.yaml").read_text()
+
+
 def test_incomplete_and_inconsistent_stops_are_reported_not_written(site, tmp_path):
     adjust = {
         "images/s1_v2.png": {"theta": math.radians(10.0)},  # disagrees with the rig
@@ -178,7 +210,15 @@ def _replace(path: Path, text: str) -> None:
 
 def _unsupported_camera(w: dict) -> None:
     shutil.rmtree(w["model"])
-    write_model(trivial_frame_model(w["site"], model="SIMPLE_RADIAL"), w["model"])
+    write_model(trivial_frame_model(w["site"], model="SIMPLE_RADIAL_FISHEYE"), w["model"])
+
+
+def _rational_camera(w: dict) -> None:
+    rec = pycolmap.Reconstruction(str(w["model"]))
+    for cam in rec.cameras.values():
+        cam.model = "FULL_OPENCV"
+        cam.params = [40.0, 40.0, 32.5, 24.5, -0.05, 0.01, 0.0, 0.0, 0.0, 0.1, 0.0, 0.0]  # k4 = 0.1
+    rec.write(str(w["model"]))
 
 
 def _mirrored_anchors(w: dict) -> None:
@@ -215,8 +255,13 @@ BREAKAGES = [
     (
         "camera_unsupported",
         _unsupported_camera,
-        ["camera 1 is a SIMPLE_RADIAL camera", "supported models: PINHOLE, SIMPLE_PINHOLE", "colmap image_undistorter"],
+        [
+            "camera 1 is a SIMPLE_RADIAL_FISHEYE camera",
+            "supported models: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV",
+            "colmap image_undistorter",
+        ],
     ),
+    ("camera_rational", _rational_camera, ["camera 1 is a FULL_OPENCV camera with k4, k5, k6 not zero"]),
     ("image_missing", lambda w: (w["images"] / "s1_v2.png").unlink(), ["image 's1_v2.png' of the model is missing"]),
     ("images_dir_missing", lambda w: shutil.rmtree(w["images"]), ["image folder not found"]),
     ("image_wrong_size", _small_image, ["s0_v1.png: image is 32x32, its COLMAP camera 64x48"]),

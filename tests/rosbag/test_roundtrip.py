@@ -71,6 +71,27 @@ def test_round_trip_each_format(tmp_path, fmt):
     assert_same_site(_ingested(cfg, site, tmp_path / "a"), _ingested(cfg, back, tmp_path / "b"))
 
 
+@pytest.mark.parametrize("fmt", ["mcap", "bag"])
+def test_a_distorted_camera_round_trips_through_camera_info(tmp_path, fmt):
+    from pipeline.io.site import Distortion, write_site
+    from pipeline.rosbag.bagfile import open_reader
+    from pipeline.rosbag.messages import field
+
+    cfg = load_config("demo")
+    site = write_capture_site(tmp_path / "site", with_run=False)
+    plain = read_site(site / "site.yaml")
+    coeffs = (-0.05, 0.01, 0.001, -0.002, 0.0005)
+    camera = plain.camera.model_copy(update={"distortion": Distortion(coeffs=coeffs)})
+    write_site(site / "site.yaml", plain.model_copy(update={"camera": camera}))
+    bags = run_export_bag(cfg, inputs={"site": site}, outputs={"out": tmp_path / "bags"}, fmt=fmt, progress=False)
+    with open_reader(bags / ("capture.bag" if fmt == "bag" else "capture")) as reader:
+        info = next(reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()
+                    if c.topic == "/camera/camera_info")
+    assert info.distortion_model == "plumb_bob" and tuple(field(info, "d")) == coeffs
+    back = run_ingest_bag(cfg, inputs={"bags": [bags]}, outputs={"out": tmp_path / "back"}, progress=False)
+    assert read_site(back / "site.yaml").camera == camera
+
+
 def test_round_trip_of_the_rendered_reference_site(micro_site, tmp_path):
     """The CI micro site that `siteloc synth` rendered, through mcap, with its kidnapped query runs."""
     cfg, ing, _ = micro_site
