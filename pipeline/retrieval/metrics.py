@@ -40,3 +40,10 @@ def map_at(rel: np.ndarray, positive: np.ndarray, k: int) -> float:
     counts = positive.sum(axis=1)
     aps = [average_precision_at(rel[i], int(counts[i]), k) for i in range(len(rel)) if counts[i] > 0]
     return float(np.mean(aps)) if aps else float("nan")
+
+
+def top1_distances(ranked: np.ndarray, query_poses: np.ndarray, db_poses: np.ndarray) -> np.ndarray:
+    """(Q,) metres from each query to its Top-1 database image: how far a wrong answer sends the robot."""
+    first = np.asarray(ranked)[:, 0]
+    return np.linalg.norm(query_poses[:, :2] - db_poses[first, :2], axis=1)
+

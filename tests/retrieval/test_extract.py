@@ -157,8 +157,9 @@ def test_cli_builds_the_index_evaluates_and_answers_a_query(site, extracted, tmp
     assert "ipa+rpa / pca" in m["variants"]
     for v in m["variants"].values():
         for key, t in v.items():
-            if key != "dims" and t["queries_with_positive"]:
+            if key not in ("dims", "top1") and t["queries_with_positive"]:
                 assert 0 <= t["recall_at_1"] <= t["recall_at_4"] <= t["recall_at_10"] <= 1
+        assert 0 <= v["top1"]["beyond_10m"] <= 1 and v["top1"]["median_m"] >= 0
     assert (tmp_path / "ev" / "recall.png").is_file() and (tmp_path / "ev" / "examples.png").is_file()
     from tests.tracked_files import approx, read_headline, read_plot
 
