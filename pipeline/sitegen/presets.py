@@ -11,11 +11,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import yaml
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 from pipeline.config import CONFIG_DIR, OdometryNoise, Strict, format_validation_error
 from pipeline.errors import ConfigError
 from pipeline.io.site import DEFAULT_CLASSES
+from pipeline.sitegen.camera_effects import CameraEffects
 
 SITES_DIR = CONFIG_DIR / "sites"
 
@@ -82,12 +83,49 @@ class IdentitySpec(Strict):
     outside_views: bool = Field(False, description="window panes show each facade's own outside view")
 
 
+EFFECT_BASES = ("off", "realistic")
+
+
+def _merged(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for key, value in over.items():
+        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def camera_effects_of(value) -> CameraEffects:
+    """`camera.effects` as written in a preset: absent or `off` (every effect off, JPEG 92: the frames synth wrote
+    before camera effects), `realistic` (every effect on, `CameraEffects`' defaults), or a mapping of keys laid
+    over the base its `base` key names (default `off`), so `camera.effects.noise.enabled=true` turns on the noise
+    alone and `camera.effects.base=realistic` + `camera.effects.noise.enabled=false` all but the noise."""
+    if isinstance(value, CameraEffects):
+        return value
+    if isinstance(value, str):
+        value = {"base": value}
+    if not isinstance(value, dict):
+        raise ValueError(f"expected off, realistic or a mapping of effect keys, got {value!r}")
+    over = dict(value)
+    base = over.pop("base", "off")
+    if base not in EFFECT_BASES:
+        raise ValueError(f"base must be one of {', '.join(EFFECT_BASES)}, got {base!r}")
+    start = CameraEffects.off() if base == "off" else CameraEffects()
+    return CameraEffects.model_validate(_merged(start.model_dump(), over))
+
+
 class CameraSpec(Strict):
     width: int = Field(640, ge=32)
     height: int = Field(480, ge=24)
     hfov_deg: float = Field(70.0, gt=10, lt=170)
     height_m: float = Field(1.2, gt=0.1, description="camera height above the floor")
     views: int = Field(6, ge=1)
+    effects: CameraEffects = Field(default_factory=CameraEffects.off, description="camera realism (`pipeline."
+                                   "sitegen.camera_effects`): off, realistic, or keys over a base (see "
+                                   "`camera_effects_of`); default off")
+
+    @field_validator("effects", mode="before")
+    @classmethod
+    def _effects(cls, value):
+        return camera_effects_of(value)
 
 
 class LaserSpec(Strict):

@@ -5,55 +5,147 @@ frame's cost is serial (vertex processing, triangle setup, readback): on 2 cores
 renders 13.0 images/s against 11.6 with 1 thread, while two processes with 1 thread each render 16.6
 (`benchmarks/render_benchmark.py --processes`). So `synth` renders through `RenderPool`: each worker
 rebuilds the scene from the preset and seed (the same scene: generation is seeded), uploads it, and takes
-batches of views: it renders each, writes the JPEG and, for capture views, returns the COCO boxes read from
-the instance buffer. The parent keeps every random draw (lighting, runs, laser) in its own order, so the
-site written is the same byte for byte whatever the number of workers (a test compares them).
+batches of views: it renders each, applies the camera effects (`camera.effects`, `camera_effects`), writes the
+image and, for capture views, returns the COCO boxes read from the (distorted) instance buffer. The parent
+keeps every random draw (lighting, runs, laser) in its own order, so the site written is the same byte for byte
+whatever the number of workers (a test compares them).
 
-`workers=1` renders in the calling process, through the same `render_views`.
+Camera effects keep that: a frame's noise comes from `frame_rng(seed, *view.frame)`, its motion blur from the
+view, and its exposure gain either from the frame alone (capture views, and run frames when the auto-exposure
+has no lag) or, when the gain lags behind earlier frames that other workers render, in two steps: `map` renders
+and distorts the frame, leaves it in `STASH` and returns its exposure meter; the parent runs the run's
+`AutoExposure` over the meters in frame order; `develop` then finishes each frame with its gain.
+
+`workers=1` renders in the calling process, through the same `render_views` and `develop_frames`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
+
+from pipeline.sitegen.camera_effects import Blur
 
 MAX_WORKERS = 4  # each worker holds the scene's textures and buffers (a few hundred MB for the office floor)
+STASH = ".develop"  # distorted frames waiting for their lagged exposure gain, under the site's temporary directory
 
 
 @dataclass(frozen=True)
 class View:
     pose: tuple[float, float, float, float]  # map_from_cam x, y, z, yaw (radians)
-    rel: str  # the JPEG's path relative to the site directory
+    rel: str  # the image's path relative to the site directory
     boxes: bool  # capture views get COCO boxes; run frames do not
+    frame: tuple[int, ...] = ()  # the ids of its noise generator, `frame_rng(seed, *frame)`
+    blur: Blur = field(default_factory=Blur)  # the camera's motion while exposed (run frames)
+    lagged: bool = False  # its exposure gain lags behind earlier frames: `map` stashes it for `develop`
+
+
+class Rendered(NamedTuple):
+    seconds: float  # rendering alone
+    boxes: list | None  # capture views: the COCO boxes
+    meter: float | None  # lagged views: the exposure meter, for the parent's `AutoExposure`
+    effects_s: float = 0.0  # the camera effects and the encoding
 
 
 @dataclass
 class RenderContext:
     renderer: object
     objects: dict
-    intrinsics: object
+    intrinsics: object  # the site's camera (the images written)
     min_box_area_px: float
     min_visible_share: float
     root: Path
+    effects: object = None  # CameraEffects; None: every effect off
+    source: object = None  # the pinhole canvas rendered (larger than `intrinsics` under distortion); None: the same
+    lens: object = None  # boxes.Lens under distortion
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        from pipeline.sitegen.camera_effects import CameraEffects
+
+        self.effects = CameraEffects.off() if self.effects is None else self.effects
+        self.source = self.intrinsics if self.source is None else self.source
 
 
-def render_views(ctx: RenderContext, lighting, views: list[View]) -> list[tuple[float, list | None]]:
-    """Render, save and box each view: (render seconds, boxes or None) per view."""
+def exposure_meter(ctx: RenderContext, rgb) -> float:
+    """What the auto-exposure meters: the mean linear luminance of the distorted, vignetted frame, before gain."""
+    import numpy as np
+
+    from pipeline.sitegen.camera_effects import LUMA, mean_luminance, srgb_to_linear, vignetting_gain
+
+    vig = ctx.effects.vignetting
+    if not (vig.enabled and vig.strength > 0):
+        return mean_luminance(rgb)
+    return float(np.mean((srgb_to_linear(rgb) @ LUMA) * vignetting_gain(ctx.intrinsics, vig.strength)))
+
+
+def _settled_gain(ctx: RenderContext, rgb) -> float:
+    from pipeline.sitegen.camera_effects import AutoExposure
+
+    ae = ctx.effects.auto_exposure
+    return AutoExposure(ae).update(exposure_meter(ctx, rgb)) if ae.enabled else 1.0
+
+
+def _write(ctx: RenderContext, view: View, rgb, gain: float) -> None:
+    """Vignetting, `gain`, the view's blur, saturation, noise, quantisation and encoding; then the file."""
+    from pipeline.sitegen.camera_effects import apply_photometric, encode, frame_rng
+
+    out = apply_photometric(rgb, effects=ctx.effects, intrinsics=ctx.intrinsics, gain=gain, blur=view.blur,
+                            rng=frame_rng(ctx.seed, *view.frame))
+    path = ctx.root / view.rel
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(encode(out, ctx.effects)[0])
+
+
+def stash_path(root: Path, view: View) -> Path:
+    return Path(root) / STASH / (view.rel + ".npy")
+
+
+def render_views(ctx: RenderContext, lighting, views: list[View]) -> list[Rendered]:
+    """Render each view, distort it and its id buffer, box it from the distorted ids, and write it (or, when
+    `lagged`, stash it and return its meter)."""
     import time
 
+    import numpy as np
+
     from pipeline.sitegen.boxes import visible_boxes
-    from pipeline.sitegen.synth import save_jpeg
+    from pipeline.sitegen.camera_effects import apply_distortion
 
     out = []
     for v in views:
         t0 = time.perf_counter()
         rgb, ids, _ = ctx.renderer.render(v.pose, lighting)
-        seconds = time.perf_counter() - t0
-        save_jpeg(ctx.root / v.rel, rgb)
-        boxes = (visible_boxes(ids, ctx.objects, ctx.intrinsics, v.pose, ctx.min_box_area_px, ctx.min_visible_share)
-                 if v.boxes else None)
-        out.append((seconds, boxes))
+        t1 = time.perf_counter()
+        rgb, ids = apply_distortion(rgb, ids if v.boxes else None, ctx.intrinsics, ctx.effects, source=ctx.source)
+        boxes = (visible_boxes(ids, ctx.objects, ctx.intrinsics, v.pose, ctx.min_box_area_px, ctx.min_visible_share,
+                               ctx.lens) if v.boxes else None)
+        meter = None
+        if v.lagged:
+            meter = exposure_meter(ctx, rgb)
+            path = stash_path(ctx.root, v)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            np.save(path, rgb)
+        else:
+            _write(ctx, v, rgb, _settled_gain(ctx, rgb))
+        out.append(Rendered(t1 - t0, boxes, meter, time.perf_counter() - t1))
+    return out
+
+
+def develop_frames(ctx: RenderContext, views: list[View], gains: list[float]) -> list[float]:
+    """Finish stashed frames with the gains the parent's auto-exposure gave them; seconds per frame."""
+    import time
+
+    import numpy as np
+
+    out = []
+    for v, gain in zip(views, gains, strict=True):
+        t0 = time.perf_counter()
+        path = stash_path(ctx.root, v)
+        _write(ctx, v, np.load(path), gain)
+        path.unlink()
+        out.append(time.perf_counter() - t0)
     return out
 
 
@@ -81,6 +173,11 @@ def _work(batch):
     return render_views(_WORKER["ctx"], lighting, views)
 
 
+def _develop(batch):
+    views, gains = batch
+    return develop_frames(_WORKER["ctx"], views, gains)
+
+
 def open_render_context(preset, seed: int, change: bool, allow_fallback: bool, root: Path, scene=None, library=None):
     """A renderer with the site's scene uploaded, and the context `render_views` needs; returns (ctx, renderer)
     (close the renderer when done)."""
@@ -94,7 +191,16 @@ def open_render_context(preset, seed: int, change: bool, allow_fallback: bool, r
     library = library if library is not None else load_assets(tuple(preset.furnishing.classes),
                                                               allow_fallback=allow_fallback)
     k = intrinsics_of(preset)
-    renderer = Renderer(k)
+    effects = preset.camera.effects
+    coeffs = effects.distortion.coeffs
+    source, lens = k, None
+    if any(coeffs):  # render a larger pinhole canvas that the lens resamples into the site's camera
+        from pipeline.sitegen.boxes import Lens
+        from pipeline.sitegen.camera_effects import source_intrinsics
+
+        source = source_intrinsics(k, coeffs)
+        lens = Lens.of(k, coeffs, source)
+    renderer = Renderer(source)
     try:
         textures = SiteTextures(scene, library.textures["poster"], preset.identity.unique_pictures)
         renderer.set_scene(structure_meshes(scene, library) + object_meshes(scene, library, textures))
@@ -102,12 +208,13 @@ def open_render_context(preset, seed: int, change: bool, allow_fallback: bool, r
         renderer.close()
         raise
     ctx = RenderContext(renderer, {o.instance_id: o for o in scene.objects}, k, preset.render.min_box_area_px,
-                        preset.render.min_visible_share, root)
+                        preset.render.min_visible_share, root, effects=effects, source=source, lens=lens, seed=seed)
     return ctx, renderer
 
 
 class RenderPool:
-    """`map(batches)`: each (lighting, [View]) batch rendered, saved and boxed, results in order.
+    """`map(batches)`: each (lighting, [View]) batch rendered, saved and boxed, results in order; `develop`:
+    lagged frames finished with their gains.
 
     With `workers` > 1, spawned processes render (see the module's docstring); otherwise a renderer here does,
     with the caller's `scene` and `library` when given (built from the preset and seed when not).
@@ -133,12 +240,18 @@ class RenderPool:
             self.ctx, self._renderer = open_render_context(preset, seed, change, allow_fallback, Path(root), scene,
                                                            library)
 
-    def map(self, batches: Iterable[tuple[object, list[View]]]) -> Iterator[list[tuple[float, list | None]]]:
+    def map(self, batches: Iterable[tuple[object, list[View]]]) -> Iterator[list[Rendered]]:
         """With workers, every batch is submitted now and rendered while the caller goes on; here, each is
         rendered as the iterator reaches it."""
         if self._pool is None:
             return (render_views(self.ctx, lighting, views) for lighting, views in batches)
         return _worker_errors(self._pool.map(_work, batches))
+
+    def develop(self, batches: Iterable[tuple[list[View], list[float]]]) -> Iterator[list[float]]:
+        """Each (views, gains) batch of stashed frames finished (`develop_frames`), submitted as `map` does."""
+        if self._pool is None:
+            return (develop_frames(self.ctx, views, gains) for views, gains in batches)
+        return _worker_errors(self._pool.map(_develop, batches))
 
     def close(self) -> None:
         if self._pool is not None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import shutil
 import time
 from pathlib import Path
 
@@ -24,7 +25,6 @@ from pipeline.io.map_yaml import write_map
 from pipeline.machine import machine_summary
 from pipeline.sitegen.presets import SitePreset
 
-JPEG_QUALITY = 92
 TIMING_FILE = "synth_timing.json"  # the one output that is not reproducible byte for byte
 
 
@@ -37,13 +37,19 @@ def intrinsics_of(preset: SitePreset):
 
 
 def site_yaml(preset: SitePreset, scene_name: str) -> dict:
+    from pipeline.sitegen.camera_effects import site_distortion
+
     k = intrinsics_of(preset)
     views = preset.camera.views
     half = preset.laser.fov_deg / 2
+    camera = {"width": k.width, "height": k.height, "fx": round(k.fx, 6), "fy": round(k.fy, 6), "cx": k.cx,
+              "cy": k.cy}
+    distortion = site_distortion(preset.camera.effects.distortion)
+    if distortion is not None:  # the images are distorted: the camera model says how
+        camera["distortion"] = distortion.model_dump(mode="json")
     return {
         "name": scene_name,
-        "camera": {"width": k.width, "height": k.height, "fx": round(k.fx, 6), "fy": round(k.fy, 6),
-                   "cx": k.cx, "cy": k.cy},
+        "camera": camera,
         "rig": {"yaw_offsets_deg": [round(360.0 * v / views, 6) for v in range(views)]},
         "laser": {"angle_min_deg": -half, "angle_max_deg": half, "beams": preset.laser.beams,
                   "range_max": preset.laser.range_max},
@@ -67,11 +73,26 @@ def _lighting(preset: SitePreset, scene, rng, changed: bool):
                     exposure=float(exposure), tint=tint)
 
 
-def save_jpeg(path: Path, rgb: np.ndarray) -> None:
-    from PIL import Image
+def image_suffix(preset: SitePreset) -> str:
+    """The suffix of the frames written: `.jpg`, or `.png` when `camera.effects.jpeg_quality` is None."""
+    return ".jpg" if preset.camera.effects.jpeg_quality is not None else ".png"
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(rgb).save(path, format="JPEG", quality=JPEG_QUALITY)
+
+def effects_record(preset: SitePreset) -> dict | None:
+    """The camera effects in force, for config.yaml and synth_report.json; None when every effect is off
+    (those files then stay byte for byte what synth wrote before camera effects)."""
+    from pipeline.sitegen.camera_effects import CameraEffects
+
+    effects = preset.camera.effects
+    return None if effects == CameraEffects.off() else effects.model_dump(mode="json")
+
+
+def preset_record(preset: SitePreset) -> dict:
+    """The effective preset for config.yaml: all of it, but `camera.effects` only when some effect is on."""
+    dump = preset.model_dump(mode="json")
+    if effects_record(preset) is None:
+        dump["camera"].pop("effects")
+    return dump
 
 
 def build_scene(preset: SitePreset, seed: int, change: bool):
@@ -95,7 +116,7 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
     from pipeline.progress import progress_bar
     from pipeline.sitegen.assets import load_assets
     from pipeline.sitegen.laser import rasterise_map
-    from pipeline.sitegen.render_pool import RenderPool, View, default_workers
+    from pipeline.sitegen.render_pool import STASH, RenderPool, View, default_workers
     from pipeline.sitegen.trajectories import sample_stops
 
     t_start = time.perf_counter()
@@ -108,7 +129,8 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
     rng = np.random.default_rng(seed + 31)
     out = Path(outputs["out"])
     workers = default_workers() if workers is None else max(1, int(workers))
-    stats = {"images": 0, "render_s": 0.0, "workers": workers}
+    suffix = image_suffix(preset)
+    stats = {"images": 0, "render_s": 0.0, "effects_s": 0.0, "workers": workers}
     with atomic_dir(out, force=force) as tmp:
         with RenderPool(preset, seed, change, allow_fallback, tmp, workers=workers, scene=scene,
                         library=library) as pool:
@@ -120,20 +142,21 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
                 views = []
                 for v, off in enumerate(offsets):
                     theta = math.atan2(math.sin(heading + off), math.cos(heading + off))
-                    rel = f"images/stop{s:04d}_v{v}.jpg"
-                    views.append(View((x, y, preset.camera.height_m, theta), rel, True))
+                    rel = f"images/stop{s:04d}_v{v}{suffix}"
+                    views.append(View((x, y, preset.camera.height_m, theta), rel, True, frame=(0, int(change), s, v)))
                     rows.append({"image": rel, "stop_id": f"stop{s:04d}", "view": v, "x": round(x, 4),
                                  "y": round(y, 4), "theta": round(theta, 6), "room": room, "area": area})
                     coco_images.append({"id": len(coco_images) + 1, "file_name": rel, "width": k.width,
                                         "height": k.height})
                 batches.append((lighting, views))
             rendered = pool.map(batches)
-            for image_id, (seconds, boxes) in enumerate(
+            for image_id, r in enumerate(
                     (r for batch in progress_bar(rendered, total=len(batches), desc="rendering stops",
                                                  unit="stop", enabled=progress) for r in batch), start=1):
-                stats["render_s"] += seconds
+                stats["render_s"] += r.seconds
+                stats["effects_s"] += r.effects_s
                 stats["images"] += 1
-                for b in boxes:
+                for b in r.boxes:
                     coco_anns.append({"id": len(coco_anns) + 1, "image_id": image_id,
                                       "category_id": preset.furnishing.classes.index(b.cls) + 1,
                                       "bbox": [b.x1, b.y1, b.x2 - b.x1, b.y2 - b.y1],
@@ -141,6 +164,7 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
                                       "instance_id": b.instance_id, "visible_share": round(b.visible_share, 3)})
             run_report = _write_runs(tmp, preset, scene, occ_map, stops, pool, rng, seed, change, stats,
                                      progress)
+        shutil.rmtree(tmp / STASH, ignore_errors=True)  # empty by now: every stashed frame was developed
         with (tmp / "captures.csv").open("w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=["image", "stop_id", "view", "x", "y", "theta", "room", "area"])
             writer.writeheader()
@@ -161,18 +185,21 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
             "runs": run_report, "assets_procedural": bool(library.procedural), "assets_missing": list(library.missing),
             "images_rendered": stats["images"],
         }
+        if effects_record(preset) is not None:
+            report["camera_effects"] = effects_record(preset)
         write_text_atomic(tmp / "synth_report.json", json.dumps(report, indent=2) + "\n")
         # Timings differ from run to run, so they live apart from the reproducible outputs.
         # render_s: summed over the workers' frames (with several workers it exceeds the rendering's wall time).
         timing = {"render_images_per_s": round(stats["images"] / max(stats["render_s"], 1e-9), 2),
                   "render_s": round(stats["render_s"], 2), "render_workers": stats["workers"],
+                  "camera_effects_s": round(stats["effects_s"], 2),
                   "wall_time_s": round(time.perf_counter() - t_start, 1),
                   "images_per_s": round(stats["images"] / max(time.perf_counter() - t_start, 1e-9), 2),
                   "machine": machine_summary()}
         write_text_atomic(tmp / "synth_timing.json", json.dumps(timing, indent=2) + "\n")
         write_text_atomic(tmp / "config.yaml", yaml.safe_dump(
             {"stage": "synth", "siteloc_version": __version__, "seed": seed, "change": change,
-             "preset": preset.model_dump(mode="json")}, sort_keys=False))
+             "preset": preset_record(preset)}, sort_keys=False))
     return out
 
 
@@ -183,13 +210,46 @@ def _count_boxes(anns: list[dict], preset: SitePreset) -> dict[str, int]:
     return counts
 
 
+def run_blurs(run, intrinsics, spec) -> list:
+    """The motion blur of each frame of `run`: the yaw rate and forward speed of the ground-truth motion
+    around the frame (the mean of the steps before and after it; a kidnapping is no motion)."""
+    from pipeline.runtime.motion import wrap_angle
+    from pipeline.sitegen.camera_effects import Blur, blur_from_motion
+
+    n = len(run.gt)
+    if not spec.enabled or spec.exposure_s == 0 or n < 2:
+        return [Blur()] * n
+    dt = np.diff(run.t)
+    step = np.diff(run.gt[:, :2], axis=0)
+    heading = run.gt[:-1, 2]
+    yaw_rate = wrap_angle(np.diff(run.gt[:, 2])) / dt
+    speed = (step[:, 0] * np.cos(heading) + step[:, 1] * np.sin(heading)) / dt
+    moving = ~np.asarray(run.kidnapped[1:], bool)  # step i -> i + 1 is a teleport when i + 1 is flagged
+    out = []
+    for i in range(n):
+        steps = [j for j in (i - 1, i) if 0 <= j < n - 1 and moving[j]]
+        if not steps:
+            out.append(Blur())
+            continue
+        out.append(blur_from_motion(intrinsics, spec, yaw_rate=float(np.mean(yaw_rate[steps])),
+                                    speed=float(np.mean(speed[steps]))))
+    return out
+
+
 def _write_runs(tmp: Path, preset, scene, occ_map, stops, pool, rng, seed, change, stats, progress) -> dict:
     from pipeline.progress import progress_bar
+    from pipeline.sitegen.camera_effects import AutoExposure
     from pipeline.sitegen.laser import LaserScanner, displace_furniture, laser_poses, laser_world_grid, walking_people
     from pipeline.sitegen.render_pool import View, chunks
     from pipeline.sitegen.trajectories import make_runs, reachable_mask, write_capture_run
 
     r, lz = preset.runs, preset.laser
+    effects = preset.camera.effects
+    # A run's gain follows its frames with a lag: the parent runs its AutoExposure over the frames' meters in
+    # frame order, whichever worker rendered them, and the workers then finish the frames (render_pool).
+    lagged = effects.auto_exposure.enabled and effects.auto_exposure.tau_frames > 0
+    suffix = image_suffix(preset)
+    k_site = intrinsics_of(preset)
     runs = make_runs(scene, occ_map, stops, n_mapping=r.mapping_runs, n_query=r.query_runs,
                      steps_per_run=r.steps_per_run, mapping_steps=r.mapping_steps, step=r.step_m,
                      kidnaps_per_query_run=r.kidnaps_per_query_run,
@@ -197,13 +257,29 @@ def _write_runs(tmp: Path, preset, scene, occ_map, stops, pool, rng, seed, chang
     report = {}
     person_room = reachable_mask(scene, occ_map, clearance=0.35)  # where people can walk: the same every run
 
-    def finish(run, ranges, views, rendered) -> None:
+    def develop(run, ranges, views, rendered):
+        """Wait for the run's renders; with a lagged exposure, hand its frames and their gains to `develop`."""
+        meters = []
         for batch in rendered:
-            stats["render_s"] += sum(seconds for seconds, _ in batch)
+            stats["render_s"] += sum(x.seconds for x in batch)
+            stats["effects_s"] += sum(x.effects_s for x in batch)
             stats["images"] += len(batch)
+            meters += [x.meter for x in batch]
+        developed = iter(())
+        if lagged:
+            ae = AutoExposure(effects.auto_exposure)  # one camera per run, settled on its first frame
+            gains = [ae.update(m) for m in meters]
+            developed = pool.develop([(c, gains[i:i + len(c)]) for i, c in zip(range(0, len(views), 10),
+                                                                               chunks(views, 10), strict=True)])
+        return run, ranges, views, developed
+
+    def finish(run, ranges, views, developed) -> None:
+        for batch in developed:
+            stats["effects_s"] += sum(batch)
         write_capture_run(tmp / "runs" / run.name, run, ranges, [v.rel for v in views])
 
     pending = None  # the previous run, whose frames the workers render while this run's scans are cast
+    developing = None  # the run before, whose stashed frames the workers finish
     for k, run in enumerate(progress_bar(runs, desc="runs", unit="run", enabled=progress)):
         run_seed = seed * 1000 + k
         # Unmapped obstacles: chairs pushed away from where the map has them, people walking past.
@@ -214,16 +290,26 @@ def _write_runs(tmp: Path, preset, scene, occ_map, stops, pool, rng, seed, chang
                                noise_sigma=lz.noise_sigma, dropout=lz.dropout, seed=run_seed)
         ranges = scanner.cast_many(laser_poses(run.gt), discs=people)
         lighting = _lighting(preset, scene, rng, change)
-        views = [View((float(x), float(y), preset.camera.height_m, float(theta)), f"images/runs/{run.name}/{i:04d}.jpg",
-                      False) for i, (x, y, theta) in enumerate(run.gt)]
+        blurs = run_blurs(run, k_site, effects.motion_blur)  # every run frame: the robot drives while exposing
+        views = [View((float(x), float(y), preset.camera.height_m, float(theta)),
+                      f"images/runs/{run.name}/{i:04d}{suffix}", False, frame=(1, int(change), k, i), blur=blurs[i],
+                      lagged=lagged) for i, (x, y, theta) in enumerate(run.gt)]
         rendered = pool.map([(lighting, c) for c in chunks(views, 10)])
         if pending is not None:
-            finish(*pending)
+            waiting = develop(*pending)
+            if developing is not None:
+                finish(*developing)
+            developing = waiting
         pending = (run, ranges, views, rendered)
         report[run.name] = {"kind": run.kind, "steps": len(run.gt), "kidnappings": int(np.sum(run.kidnapped)),
                             "moved_chairs": len(moved), "people": lz.people}
     if pending is not None:
-        finish(*pending)
+        waiting = develop(*pending)
+        if developing is not None:
+            finish(*developing)
+        developing = waiting
+    if developing is not None:
+        finish(*developing)
     return report
 
 

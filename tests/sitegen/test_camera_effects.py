@@ -264,3 +264,65 @@ def test_a_gain_range_upside_down_is_refused():
 
     with pytest.raises(ValidationError, match="min_gain 4.0 is above max_gain 2.0"):
         AutoExposureSpec(min_gain=4.0, max_gain=2.0)
+
+
+def test_the_lens_measures_a_pinhole_rectangle_in_distorted_pixels():
+    """boxes.Lens against counting: a rectangle of the pinhole render resampled through the lens (nearest)."""
+    from pipeline.sitegen.boxes import Lens
+
+    src = source_intrinsics(K, COEFFS)
+    lens = Lens.of(K, COEFFS, src)
+    assert lens.area(-1e9, 1e9, -1e9, 1e9) == pytest.approx(K.width * K.height, rel=0.01)  # the whole image
+    v, u = np.mgrid[0:src.height, 0:src.width]
+    for u1, u2, v1, v2 in ((60.0, 100.0, 40.0, 80.0), (-5.0, 40.0, -5.0, 30.0), (150.0, 400.0, 100.0, 400.0)):
+        inside = ((u >= u1) & (u <= u2) & (v >= v1) & (v <= v2)).astype(np.uint8)
+        count = int(distort_image(inside, K, COEFFS, nearest=True, source=src).sum())
+        assert count > 100 and lens.area(u1, u2, v1, v2) == pytest.approx(count, rel=0.03), (u1, v1)
+    flat = Lens.of(K, (0.0,) * 5, K)  # no distortion: one pixel per pixel
+    assert flat.area(10.2, 20.7, 5.0, 9.0) == 10 * 5
+    assert lens.area(1e4, 2e4, 0, 10) == 0.0
+
+
+def test_run_blurs_follow_the_ground_truth_motion_and_stop_at_a_kidnapping():
+    from types import SimpleNamespace
+
+    from pipeline.sitegen.synth import run_blurs
+
+    # Steps: straight 0.4 m, then turning left 0.2 rad, then a teleport into frame 3, then 0.4 m straight.
+    gt = np.array([[0.0, 0.0, 0.0], [0.4, 0.0, 0.0], [0.8, 0.0, 0.2], [9.0, 9.0, 1.0],
+                   [9.0 + 0.4 * math.cos(1.0), 9.0 + 0.4 * math.sin(1.0), 1.0]])
+    run = SimpleNamespace(t=0.5 * np.arange(5), gt=gt, kidnapped=np.array([False, False, False, True, False]))
+    spec = MotionBlurSpec(exposure_s=0.02, forward_depth_m=4.0)
+    b = run_blurs(run, K, spec)
+    assert b[0] == blur_from_motion(K, spec, yaw_rate=0.0, speed=0.8)  # forward only: a zoom, no shift
+    assert b[0].shift == (0.0, 0.0) and b[0].zoom == pytest.approx(0.8 * 0.02 / 4.0)
+    assert b[1].shift[0] == pytest.approx(K.fx * 0.2 * 0.02)  # mean of 0 and 0.4 rad/s: left turn, scene moves right
+    forward_2 = 0.4 * math.cos(0.0) / 0.5
+    want = blur_from_motion(K, spec, yaw_rate=0.4, speed=forward_2)  # the teleport after it does not count
+    assert b[2].shift == pytest.approx(want.shift) and b[2].zoom == pytest.approx(want.zoom)
+    want = blur_from_motion(K, spec, yaw_rate=0.0, speed=0.8)  # after the teleport: the next step alone
+    for blur in b[3:]:
+        assert blur.shift == pytest.approx(want.shift, abs=1e-9) and blur.zoom == pytest.approx(want.zoom)
+    alone = SimpleNamespace(t=run.t[:3], gt=gt[:3], kidnapped=np.array([False, True, True]))
+    assert run_blurs(alone, K, spec)[1] == Blur()  # between two teleports: no motion
+    assert run_blurs(run, K, spec.model_copy(update={"enabled": False})) == [Blur()] * 5
+
+
+def test_camera_effects_in_a_preset_default_off_and_override_one_at_a_time():
+    from pipeline.sitegen.presets import SitePreset, load_site_preset
+
+    assert load_site_preset("tiny").camera.effects == CameraEffects.off()
+    one = load_site_preset("tiny", {"camera.effects.noise.enabled": True}).camera.effects
+    assert one == CameraEffects.off().model_copy(update={"noise": CameraEffects().noise})  # the noise alone
+    assert load_site_preset("tiny", {"camera.effects": "realistic"}).camera.effects == CameraEffects()
+    most = load_site_preset("tiny", {"camera.effects.base": "realistic", "camera.effects.noise.enabled": False,
+                                     "camera.effects.jpeg_quality": None}).camera.effects
+    assert not most.noise.enabled and most.distortion.enabled and most.auto_exposure.enabled
+    assert most.jpeg_quality is None
+    for preset in (load_site_preset("tiny", {"camera.effects.distortion": {"enabled": True, "k1": -0.1}}),
+                   load_site_preset("tiny", {"camera.effects": "realistic"})):
+        assert SitePreset.model_validate(preset.model_dump(mode="json")) == preset  # config.yaml reads back
+    with pytest.raises(ConfigError, match="base must be one of off, realistic"):
+        load_site_preset("tiny", {"camera.effects": "vivid"})
+    with pytest.raises(ConfigError, match="camera.effects.nois"):
+        load_site_preset("tiny", {"camera.effects.nois.enabled": True})

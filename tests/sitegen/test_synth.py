@@ -43,8 +43,8 @@ def micro(**extra):
     return load_site_preset("tiny", {**MICRO, **extra})
 
 
-def synth(out: Path, seed: int = 3, **kwargs) -> Path:
-    return run_synth(micro(), outputs={"out": out}, seed=seed, progress=False, **kwargs)
+def synth(out: Path, seed: int = 3, preset=None, **kwargs) -> Path:
+    return run_synth(preset or micro(), outputs={"out": out}, seed=seed, progress=False, **kwargs)
 
 
 def digests(root: Path) -> dict[str, str]:
@@ -69,9 +69,20 @@ def captures(site: Path) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
+# Every camera effect spelt out and off: the frames synth wrote before camera effects (JPEG 92).
+EFFECTS_OFF = {"camera.effects": {"distortion": {"enabled": False}, "vignetting": {"enabled": False},
+                                  "auto_exposure": {"enabled": False}, "motion_blur": {"enabled": False},
+                                  "noise": {"enabled": False}, "jpeg_quality": 92}}
+
+
 def test_same_seed_same_bytes_and_another_seed_another_site(site, tmp_path):
-    again = digests(synth(tmp_path / "again", workers=1))  # rendered here, in one process
+    # Rendered here, in one process, with the camera effects explicitly off (the site: absent, the default).
+    again = digests(synth(tmp_path / "again", workers=1, preset=micro(**EFFECTS_OFF)))
     assert again == digests(site)
+    # Nothing of the effects in the outputs: they are byte for byte what synth wrote before camera effects.
+    assert "effects" not in yaml.safe_load((site / "config.yaml").read_text())["preset"]["camera"]
+    assert "camera_effects" not in json.loads((site / "synth_report.json").read_text())
+    assert "distortion" not in yaml.safe_load((site / "site.yaml").read_text())["camera"]
     assert {"site.yaml", "map.yaml", "map.pgm", "captures.csv", "annotations.json", "contact_sheet.png",
             "config.yaml", "synth_report.json", "runs/query_00/scans.npy"} <= set(again)
     timing = json.loads((site / TIMING_FILE).read_text())
@@ -246,3 +257,149 @@ def test_cli_reports_counts_and_refuses_bad_overrides(tmp_path):
     assert "stops" in res.output and "images/s" in res.output and "boxes per class: door" in res.output
     res = runner.invoke(app, args)
     assert res.exit_code == 1 and "--force" in res.output
+
+
+# A smaller micro site with every camera effect on (`camera.effects: realistic`), the exposure longer so that
+# the motion blur of 96-pixel frames is more than a pixel where the robot turns.
+EFFECTS_ON = {"stops.spacing": 4.0, "camera.effects": {"base": "realistic", "motion_blur": {"exposure_s": 0.03}}}
+
+
+@pytest.fixture(scope="module")
+def fx_site(tmp_path_factory) -> tuple[Path, list]:
+    """The effects-on site, rendered in two processes, and the lighting the parent drew (stops, then runs)."""
+    import pipeline.sitegen.synth as synth_module
+
+    drawn, draw = [], synth_module._lighting
+
+    def recorded(*args, **kwargs):
+        drawn.append(draw(*args, **kwargs))
+        return drawn[-1]
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(synth_module, "_lighting", recorded)
+        root = synth(tmp_path_factory.mktemp("fx") / "site", preset=micro(**EFFECTS_ON), workers=2)
+    return root, drawn
+
+
+@pytest.fixture(scope="module")
+def fx_context(fx_site, tmp_path_factory):
+    """A render context of the effects-on site in this process (the workers' code), writing to a scratch root."""
+    from pipeline.sitegen.render_pool import open_render_context
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ctx, renderer = open_render_context(micro(**EFFECTS_ON), 3, False, True, tmp_path_factory.mktemp("fxr"))
+    yield ctx
+    renderer.close()
+
+
+def test_effects_on_same_bytes_with_one_or_two_workers_and_recorded(fx_site, tmp_path):
+    site, _ = fx_site
+    again = synth(tmp_path / "again", preset=micro(**EFFECTS_ON), workers=1)
+    assert digests(again) == digests(site)
+    assert not (site / ".develop").exists() and not (again / ".develop").exists()
+    effects = micro(**EFFECTS_ON).camera.effects
+    assert effects.noise.enabled and effects.motion_blur.exposure_s == 0.03
+    assert yaml.safe_load((site / "config.yaml").read_text())["preset"]["camera"]["effects"] == \
+        effects.model_dump(mode="json")
+    assert json.loads((site / "synth_report.json").read_text())["camera_effects"] == effects.model_dump(mode="json")
+
+
+def test_effects_on_site_ingests_unchanged_with_its_lens_in_site_yaml(fx_site, tmp_path):
+    from PIL import Image
+
+    from pipeline.io.site import read_site
+    from pipeline.sitegen.camera_effects import mean_luminance, site_distortion
+
+    site, _ = fx_site
+    camera = read_site(site / "site.yaml").camera
+    assert camera.distortion == site_distortion(micro(**EFFECTS_ON).camera.effects.distortion)
+    assert camera.distortion.coeffs[0] < 0 and (camera.width, camera.height) == (96, 72)
+    ingested = run_ingest(load_config("ci"), inputs={"site": site}, outputs={"out": tmp_path / "ing"}, progress=False)
+    images = tables.read_table(ingested / "images.parquet", "images").to_pylist()
+    coco = json.loads((site / "annotations.json").read_text())
+    assert len(images) == len(captures(site)) == len(coco["images"])
+    assert tables.read_table(ingested / "boxes.parquet", "boxes").num_rows == len(coco["annotations"]) > 0
+    assert sorted(p.stem for p in (ingested / "runs").glob("*.parquet")) == ["mapping_00", "query_00"]
+    # Capture views expose on their own: each settles at the auto-exposure's 18 % grey (without: 8 % to 83 %).
+    rows = captures(site)
+    for r in rows[:: max(1, len(rows) // 20)]:
+        with Image.open(site / r["image"]) as im:
+            assert im.size == (96, 72)
+            assert mean_luminance(np.asarray(im.convert("RGB"))) == pytest.approx(0.18, abs=0.01), r["image"]
+
+
+def test_effects_on_boxes_agree_with_a_fresh_distorted_instance_buffer(fx_site, fx_context):
+    """Re-render capture views on the larger pinhole canvas, distort the id buffer, derive each box from it."""
+    from pipeline.sitegen.camera_effects import apply_distortion
+    from pipeline.sitegen.render import Lighting
+
+    site, _ = fx_site
+    ctx, preset = fx_context, micro(**EFFECTS_ON)
+    k, src = ctx.intrinsics, ctx.source
+    pad_u, pad_v = round(src.cx - k.cx), round(src.cy - k.cy)
+    assert src.width > k.width and src.height > k.height and pad_u > 0 and pad_v > 0
+    coco = json.loads((site / "annotations.json").read_text())
+    anns: dict[int, list[dict]] = {}
+    for a in coco["annotations"]:
+        anns.setdefault(a["image_id"], []).append(a)
+    pose_of = {r["image"]: (float(r["x"]), float(r["y"]), preset.camera.height_m, float(r["theta"]))
+               for r in captures(site)}
+    checked = moved = 0
+    for im in sorted(coco["images"], key=lambda im: -len(anns.get(im["id"], [])))[:8]:
+        rgb, ids, _ = ctx.renderer.render(pose_of[im["file_name"]], Lighting())
+        _, distorted = apply_distortion(rgb, ids, k, preset.camera.effects, source=src)
+        pinhole = ids[pad_v:pad_v + k.height, pad_u:pad_u + k.width]  # the undistorted camera's id buffer
+        for a in anns[im["id"]]:
+            ys, xs = np.nonzero(distorted == a["instance_id"])
+            x, y, w, h = a["bbox"]
+            assert (x, y, x + w, y + h) == (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)
+            assert 0.25 <= a["visible_share"] <= 1.0
+            ys, xs = np.nonzero(pinhole == a["instance_id"])
+            moved += len(xs) == 0 or (x, y, x + w, y + h) != (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)
+            checked += 1
+    assert checked >= 10 and moved >= checked // 4  # the lens really moves the boxes
+
+
+def test_run_frames_lag_in_exposure_and_blur_where_the_robot_turns(fx_site, fx_context):
+    """Rebuild each run's frames here, one after another, with the lighting the parent drew: the site written
+    by two workers is that, byte for byte; the gains lag behind the per-frame ideal; blur lowers the
+    horizontal image gradients of turning frames against the same frames developed without blur."""
+    from PIL import Image
+
+    from pipeline.sitegen.camera_effects import AutoExposure
+    from pipeline.sitegen.render_pool import View, develop_frames, render_views
+    from pipeline.sitegen.synth import run_blurs
+
+    site, drawn = fx_site
+    ctx, preset = fx_context, micro(**EFFECTS_ON)
+    report = json.loads((site / "synth_report.json").read_text())
+    spec = preset.camera.effects.auto_exposure
+    turning = lagging = 0
+    for k, name in enumerate(report["runs"]):
+        with (site / "runs" / name / "trajectory.csv").open(newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        gt = np.array([[float(r["gt_x"]), float(r["gt_y"]), float(r["gt_theta"])] for r in rows])
+        run = type("Run", (), {"t": np.array([float(r["t"]) for r in rows]), "gt": gt,
+                               "kidnapped": np.array([r["kidnapped"] == "1" for r in rows])})
+        blurs = run_blurs(run, ctx.intrinsics, preset.camera.effects.motion_blur)
+        views = [View((*gt[i, :2], preset.camera.height_m, gt[i, 2]), f"{name}/{i:04d}.jpg", False, frame=(1, 0, k, i),
+                      blur=blurs[i], lagged=True) for i in range(len(rows))]
+        meters = [r.meter for r in render_views(ctx, drawn[report["stops"] + k], views)]
+        ae = AutoExposure(spec)
+        gains = [ae.update(m) for m in meters]
+        lagging += sum(abs(g / AutoExposure(spec).ideal_gain(m) - 1) > 0.02 for g, m in zip(gains, meters, strict=True))
+        develop_frames(ctx, views, gains)
+        for v, r in zip(views, rows, strict=True):
+            assert (ctx.root / v.rel).read_bytes() == (site / r["image"]).read_bytes(), r["image"]
+        sharp = [View(v.pose, v.rel.replace(".jpg", "_sharp.jpg"), False, frame=v.frame, lagged=True) for v in views]
+        render_views(ctx, drawn[report["stops"] + k], sharp)
+        develop_frames(ctx, sharp, gains)
+        for v, s, b in zip(views, sharp, blurs, strict=True):
+            if abs(b.shift[0]) < 1.0:
+                continue
+            blurred, still = (np.asarray(Image.open(ctx.root / x.rel).convert("L"), float) for x in (v, s))
+            ex, ex0 = (float(np.mean(np.diff(img, axis=1) ** 2)) for img in (blurred, still))
+            assert ex < 0.9 * ex0, (v.rel, b)
+            turning += 1
+    assert turning >= 3 and lagging >= 2
