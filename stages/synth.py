@@ -12,8 +12,13 @@ from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, load
 HELP = """Generate and render a reference office floor as a site capture directory.
 
 The floor (corridor loops, rows of similar rooms, doors, windows, desks, chairs, posters, extinguishers,
-bins, plants, exit signs) comes from a preset in configs/sites/ (tiny, office, paper) and a seed; the
-same preset and seed give the same site. Views are rendered with OpenGL on a headless EGL context
+bins, plants, exit signs) comes from a preset in configs/sites/ (tiny; office, with the identity cues of
+a real building: wings in their colours, room plates, a picture of its own on every poster, escape plans,
+signs, notice boards, kitchens, desk clutter, outside views; twins, the same floor without them; paper)
+and a seed; the same preset and seed give the same site. Cues switch one by one (--set
+identity.room_plates=false), camera realism too (--set camera.effects=realistic, or
+--set camera.effects.noise.enabled=true for one effect): docs/reference-site.md.
+Views are rendered with OpenGL on a headless EGL context
 (Mesa llvmpipe on a CPU) using real furniture meshes and photographic textures from Debian's Sweet Home
 3D packages (installed by `make setup`); without them procedural shapes are used, with a warning.
 
@@ -23,7 +28,8 @@ runs/<run>/ (mapping and query runs: ground truth, noisy odometry, 270-degree la
 dropouts, people and moved chairs, an image per step, kidnappings flagged), contact_sheet.png,
 synth_report.json, synth_timing.json, config.yaml and ATTRIBUTION.md. `siteloc ingest` takes the directory as it is.
 
---change writes the same building after a change (moved furniture, new posters, other lighting).
+--change writes the same building after a change (moved furniture, new posters, new notes on the
+boards, other lighting; plates and signs stay).
 --config picks the synth section of a preset in configs/ (demo: office; ci: a micro tiny site; paper:
 paper) and --preset / --seed / --set override it. --set overrides any site preset key, e.g.
 --set camera.width=320 --set camera.height=240 --set runs.query_runs=5.
@@ -41,7 +47,7 @@ def synth(
         str | None,
         typer.Option(
             "--preset", "-p", show_default=False,
-            help="Site preset: tiny, office, paper, or a YAML path \\[default: the config's synth.site].",
+            help="Site preset: tiny, office, twins, paper, or a YAML path \\[default: the config's synth.site].",
         ),
     ] = None,
     seed: Annotated[
