@@ -137,8 +137,8 @@ def add_plate(p, label: str, cx: float, cy: float, dx: float, dy: float, width: 
         a = side * (width / 2 + 0.12 + w / 2)
         x, y = cx + dx * a + nx * off, cy + dy * a + ny * off
         if not p._covers_fixture(x, y, w, gap=0.05):
-            p.add("", "plate", x, y, HEIGHTS["plate"], corridor_yaw, room, size=SIZES["plate"], blocks=False)
-            p.scene.objects[-1] = replace(p.scene.objects[-1], label=label)
+            p.add("", "plate", x, y, HEIGHTS["plate"], corridor_yaw, room, size=SIZES["plate"], blocks=False,
+                  label=label)
             return
 
 
@@ -215,8 +215,8 @@ def desk_clutter(p, rng: np.random.Generator) -> None:
         back = 0.12
         x = desk.x - math.cos(desk.yaw) * back
         y = desk.y - math.sin(desk.yaw) * back
-        p.add("", "clutter", x, y, desk.size[2], desk.yaw, desk.room, size=SIZES["clutter"], blocks=False)
-        p.scene.objects[-1] = replace(p.scene.objects[-1], variant=int(rng.integers(0, 1 << 16)))
+        p.add("", "clutter", x, y, desk.size[2], desk.yaw, desk.room, size=SIZES["clutter"], blocks=False,
+              variant=int(rng.integers(0, 1 << 16)))
 
 
 def unique_pictures(scene: Scene) -> None:
