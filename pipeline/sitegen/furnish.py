@@ -100,6 +100,7 @@ def furnish_scene(scene: Scene, preset: SitePreset, seed: int) -> Scene:
     if spec.wing_colours:
         identity.paint_rooms(scene, spec.accent_wall_share, cue_rng)
     scene.outside_views = spec.outside_views
+    scene.painted, scene.dado_height = spec.painted_walls, spec.dado_height if spec.painted_walls else 0.0
     p.plates = identity.room_plates(scene, spec.plate_names_share, cue_rng) if spec.room_plates else {}
     for wall in scene.walls:
         _wall_fixtures(p, wall)
@@ -156,18 +157,23 @@ def _furnish_room(p: _Placer, room: Room) -> None:
         _furnish_service_room(p, room, far, sides)
     elif room.kind == "meeting":
         _table_with_chairs(p, room, None)
+        if p.preset.identity.room_boards:
+            identity.room_board(p, room, [far, *sides[::-1]])
     else:
         length = _side_length(r, far)
         n_desks = max(1, int((length - 0.4) / 1.7))
         for k in range(n_desks):
             along = length * (k + 0.5) / n_desks
-            p.on_wall("", "desk", r, far, along, 0.0, room.name, blocks=True)
+            if not p.on_wall("", "desk", r, far, along, 0.0, room.name, blocks=True):
+                continue
             desk = p.scene.objects[-1]
             face = desk.yaw
             cx = desk.x + math.cos(face) * 0.7 + rng.normal(0, 0.08)
             cy = desk.y + math.sin(face) * 0.7 + rng.normal(0, 0.08)
             # chair front (-y of the model) points at the desk: its yaw is the desk's facing + pi/2 offset
             p.add("chair", "chair", cx, cy, 0.0, face + math.pi + rng.normal(0, 0.3), room.name)
+        if p.preset.identity.room_boards:
+            identity.room_board(p, room, [far, *sides[::-1]])
         if rng.random() < 0.6:
             p.on_wall("", "cabinet", r, sides[0], 0.6, 0.0, room.name, blocks=True)
         corner = rng.uniform(0.3, 0.6)

@@ -91,7 +91,7 @@ PAINT_PIECE_M = 2.0  # walls are cut in pieces this long at most, so each face t
 def structure_meshes(scene: Scene, library) -> list[RenderMesh]:
     """Walls (per wall texture), floors (per floor texture) and the ceiling. With wings (`sitegen.identity`)
     each wall face is tinted by the room or wing it faces and corridor floors take their wing's material."""
-    from pipeline.sitegen.identity import floor_tint, surface_at
+    from pipeline.sitegen.identity import PAINT, floor_tint, paint_texture, surface_bands
 
     textures = library.textures
     out = []
@@ -112,11 +112,21 @@ def structure_meshes(scene: Scene, library) -> list[RenderMesh]:
                 for f, face in enumerate(faces):
                     nx, ny = face[1][0][:2]
                     probe = 0.3 if f < 2 else 0.05  # long faces look 0.3 m ahead; jambs and sills just off
-                    material, colour = surface_at(scene, mx + nx * probe, my + ny * probe, len(wall_tex))
-                    by_material[(material, colour)].append(face)
+                    bands = surface_bands(scene, mx + nx * probe, my + ny * probe, len(wall_tex))
+                    if len(bands) == 1 or f >= 4:  # one surface, or a lintel's / sill's face at its height
+                        z = z1 if f == 4 else z0
+                        _, material, colour = next(b for b in bands if b[0] > z + 1e-6 or b is bands[-1])
+                        by_material[(material, colour)].append(face)
+                        continue
+                    lo = z0  # a vertical face crossing bands (a dado) is cut at each band's top
+                    for top, material, colour in bands:
+                        if min(top, z1) > lo + 1e-6:
+                            by_material[(material, colour)].append(_box_faces(wall, b0, b1, lo, min(top, z1), tile)[f])
+                        lo = max(lo, top)
+    paint = paint_texture() if any(material == PAINT for material, _ in by_material) else None
     for (material, colour), faces in sorted(by_material.items()):
         pos, nrm, uv = _concat(faces)
-        out.append(RenderMesh(pos, nrm, uv, wall_tex[material % len(wall_tex)], colour))
+        out.append(RenderMesh(pos, nrm, uv, paint if material == PAINT else wall_tex[material % len(wall_tex)], colour))
     floors: dict[tuple, list] = defaultdict(list)
     for room in scene.rooms:
         pieces = [(room.rect, room.floor_material)]

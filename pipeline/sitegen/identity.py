@@ -29,6 +29,7 @@ SIGNAGE_KINDS = ("plate", "notice_board", "escape_plan", "sign")
 SIZES = {"plate": (0.2, 0.015, 0.125), "notice_board": (1.0, 0.03, 0.75), "escape_plan": (0.42, 0.012, 0.315),
          "sign": (0.8, 0.025, 0.2), "clutter": (0.9, 0.4, 0.45), "sofa": (1.8, 0.85, 0.85),
          "water_cooler": (0.35, 0.35, 1.1), "whiteboard": (1.5, 0.55, 1.8)}
+ROOM_BOARD_Z = 1.25  # bottom edge of a room's pinboard, above desks (0.75 m) and their monitors
 HEIGHTS = {"plate": 1.45, "notice_board": 1.0, "escape_plan": 1.35, "sign": 1.9}  # of the bottom edge, m
 
 
@@ -122,6 +123,41 @@ def surface_at(scene: Scene, x: float, y: float, n_materials: int) -> tuple[int,
     return material, tuple(float(0.3 + 0.7 * c) for c in wing.colour)  # type: ignore[return-value]
 
 
+PAINT = -1  # the material index of smooth paint (`paint_texture`), beside the library's wall textures
+DADO_RAIL_M = 0.04  # a darker rail on top of a corridor's dado
+
+
+def surface_bands(scene: Scene, x: float, y: float, n_materials: int) -> list[tuple[float, int, tuple]]:
+    """The wall surface facing the point (x, y) as bands from the floor up: (top of the band in metres, material,
+    tint), the last band reaching the ceiling. Unpainted: one band, `surface_at`'s. Painted (`scene.painted`):
+    rooms in their paint; corridors light above a dado in their wing's full colour (a real building's colour
+    scheme: the colour reads as colour on smooth paint, where a tinted roughcast reads as texture)."""
+    material, tint = surface_at(scene, x, y, n_materials)
+    if not scene.painted:
+        return [(math.inf, material, tint)]
+    name, _ = scene.room_at(x, y)
+    wing = scene.wing_at(x, y)
+    if name in scene.paint or wing is None:
+        return [(math.inf, PAINT, tint)]
+    colour = np.asarray(wing.colour)
+    light = tuple(float(v) for v in 0.82 + 0.18 * colour)
+    if scene.dado_height <= 0:
+        return [(math.inf, PAINT, light)]
+    dado = tuple(float(v) for v in 0.15 + 0.8 * colour)
+    rail = tuple(float(v) for v in 0.6 * colour)
+    return [(scene.dado_height, PAINT, dado), (scene.dado_height + DADO_RAIL_M, PAINT, rail), (math.inf, PAINT, light)]
+
+
+def paint_texture(size: int = 128) -> np.ndarray:
+    """Smooth matt paint: near-white with a faint roller mottle, (size, size, 3) uint8, tinted by the mesh colour."""
+    rng = np.random.default_rng(IDENTITY_SALT)
+    coarse = rng.random((size // 16, size // 16))
+    mottle = np.kron(coarse, np.ones((16, 16)))
+    fine = rng.random((size, size))
+    value = 0.93 + 0.025 * (mottle - 0.5) + 0.015 * (fine - 0.5)
+    return (np.clip(value, 0, 1)[..., None] * np.ones(3) * 255).astype(np.uint8)
+
+
 def floor_tint(scene: Scene, x: float, y: float) -> tuple[float, float, float]:
     wing = scene.wing_at(x, y)
     return tuple(float(0.75 + 0.25 * c) for c in wing.colour) if wing else (1.0, 1.0, 1.0)  # type: ignore[return-value]
@@ -165,7 +201,7 @@ def corridor_cues(p, room: Room, spec, blocked: list[tuple[float, float]], rng: 
                 if any(a - 0.15 < pos + w / 2 and pos - w / 2 < b + 0.15 for a, b in blocked):
                     continue
                 before = len(p.scene.objects)
-                p.on_wall("", kind, r, side, along, HEIGHTS[kind], room.name, blocks=False)
+                p.on_wall("", kind, r, side, along, HEIGHTS[kind], room.name, blocks=False, shifts=(0.0,))
                 if len(p.scene.objects) > before:
                     o = p.scene.objects[-1]
                     p.scene.objects[-1] = replace(o, label=cue_label(p.scene, kind, o.x, o.y, o.yaw, j * 2 + s))
@@ -205,6 +241,20 @@ def cue_label(scene: Scene, kind: str, x: float, y: float, yaw: float, k: int) -
     if left is right:
         return f"sign:Wing {left.letter} ^:Exit >"
     return f"sign:Wing {left.letter} <:Wing {right.letter} >"
+
+
+def room_board(p, room: Room, sides: list[str]) -> None:
+    """A pinboard of the room's own, on the first of `sides` (the desks' wall first) where one fits clear of
+    windows and fixtures near the wall's middle; its notes are keyed by where it hangs, so no two boards of a
+    floor show the same."""
+    for side in sides:
+        length = room.rect.w if side in ("north", "south") else room.rect.h
+        for shift in (0.0, 0.8, -0.8):
+            if p.on_wall("", "notice_board", room.rect, side, length / 2 + shift, ROOM_BOARD_Z, room.name,
+                         blocks=False, shifts=(0.0,)):
+                o = p.scene.objects[-1]
+                p.scene.objects[-1] = replace(o, label=cue_label(p.scene, "notice_board", o.x, o.y, o.yaw, 0))
+                return
 
 
 def desk_clutter(p, rng: np.random.Generator) -> None:

@@ -81,6 +81,12 @@ class IdentitySpec(Strict):
                              "its own way")
     desk_clutter: bool = Field(False, description="monitors, books and papers on desks")
     outside_views: bool = Field(False, description="window panes show each facade's own outside view")
+    painted_walls: bool = Field(False, description="walls in smooth paint instead of the library's roughcast and "
+                                "brick: rooms in their tint, corridors light above a dado in their wing's colour")
+    dado_height: float = Field(1.0, ge=0, le=2.0, description="painted corridors: height of the wing-coloured dado, "
+                               "m (0: none)")
+    room_boards: bool = Field(False, description="a pinboard of its own above the desks of every office and "
+                              "meeting room")
 
 
 EFFECT_BASES = ("off", "realistic")

@@ -151,6 +151,8 @@ class Scene:
     wings: list[Wing] = field(default_factory=list)  # identity zones (`sitegen.identity`); empty: one plain floor
     paint: dict[str, tuple[float, float, float]] = field(default_factory=dict)  # room name -> its walls' tint
     outside_views: bool = False  # window panes show the facade's outside view instead of flat glass
+    painted: bool = False  # walls in smooth paint (`identity.surface_bands`) instead of the library's textures
+    dado_height: float = 0.0  # painted corridors: the wing-coloured band from the floor up to this height, m
 
     def wing_at(self, x: float, y: float) -> Wing | None:
         for wing in self.wings:

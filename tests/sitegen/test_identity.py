@@ -149,3 +149,73 @@ def test_picture_styles_differ_and_have_the_stated_shape():
     assert len({digest(p) for p in pool}) == len(pool)
     assert all(p.dtype == np.uint8 and p.shape[2] == 3 and sorted(p.shape[:2]) == sorted(pictures.SIZE) for p in pool)
     assert not np.array_equal(pictures.picture(0, 0, []), pictures.picture(0, 0, [PHOTO]))  # no photo: drawn
+
+
+def test_painted_corridors_wear_a_dado_of_their_wing_colour_and_rooms_their_paint(office):
+    from pipeline.sitegen.identity import PAINT, surface_at, surface_bands
+
+    assert office.painted and office.dado_height == pytest.approx(1.0)
+    corridors = [r.rect for r in office.rooms if r.kind == "corridor"]
+    for w in office.wings:
+        c = next(c for c in corridors if min(c.x1, w.rect.x1) - max(c.x0, w.rect.x0) > 1
+                 and min(c.y1, w.rect.y1) - max(c.y0, w.rect.y0) > 1)  # a piece of corridor inside this wing
+        x, y = (max(c.x0, w.rect.x0) + min(c.x1, w.rect.x1)) / 2, (max(c.y0, w.rect.y0) + min(c.y1, w.rect.y1)) / 2
+        bands = surface_bands(office, x, y, 5)
+        assert [b[0] for b in bands] == [1.0, 1.04, math.inf] and {b[1] for b in bands} == {PAINT}
+        assert np.allclose(bands[0][2], 0.15 + 0.8 * np.asarray(w.colour))  # the dado: the wing's colour
+        assert min(bands[2][2]) > 0.8  # above it: light paint
+    for room in (r for r in office.rooms if r.kind != "corridor"):
+        assert surface_bands(office, room.rect.cx, room.rect.cy, 5) == [(math.inf, PAINT, office.paint[room.name])]
+    twins = scene_of("twins")  # unpainted: one band, the library's texture as before
+    x, y = twins.rooms[0].rect.cx, twins.rooms[0].rect.cy
+    assert not twins.painted and surface_bands(twins, x, y, 5) == [(math.inf, *surface_at(twins, x, y, 5))]
+
+
+def test_paint_is_smooth_and_deterministic():
+    from pipeline.sitegen.identity import paint_texture
+
+    a = paint_texture()
+    assert a.shape == (128, 128, 3) and a.dtype == np.uint8 and np.array_equal(a, paint_texture())
+    assert 225 < a.mean() < 245 and a.std() < 5  # near-white matt paint, a faint mottle, no grain
+
+
+def test_painted_walls_cover_the_same_surface_cut_at_the_dado(office):
+    from pipeline.sitegen.geometry import structure_meshes
+    from pipeline.sitegen.identity import paint_texture
+
+    class Library:  # flat textures: only the geometry and the paint are under test
+        textures = {"wall": [np.full((4, 4, 3), 200, np.uint8)] * 5, "floor": [np.zeros((4, 4, 3), np.uint8)] * 3,
+                    "ceiling": [np.zeros((4, 4, 3), np.uint8)]}
+
+    def walls(scene):  # the meshes wearing a wall texture or the paint
+        return [m for m in structure_meshes(scene, Library) if m.texture is Library.textures["wall"][0]
+                or m.texture.shape[0] == 128]
+
+    def area(meshes):
+        total = 0.0
+        for m in meshes:
+            t = m.positions.reshape(-1, 3, 3)
+            total += 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum()
+        return total
+
+    plain = scene_of("office")
+    plain.painted, plain.dado_height = False, 0.0
+    painted_walls, plain_walls = walls(office), walls(plain)
+    assert area(painted_walls) == pytest.approx(area(plain_walls), rel=1e-6)  # the same walls, only cut and painted
+    paint = [m for m in painted_walls if m.texture.shape[0] == 128]
+    assert paint and all(np.array_equal(m.texture, paint_texture()) for m in paint)
+    dado_colours = {tuple(float(v) for v in 0.15 + 0.8 * np.asarray(w.colour)) for w in office.wings}
+    dados = [m for m in paint if tuple(m.colour) in dado_colours]
+    assert dados and max(m.positions[:, 2].max() for m in dados) <= office.dado_height + 1e-6
+
+
+def test_every_office_and_meeting_room_has_a_pinboard_of_its_own(office):
+    from pipeline.sitegen.identity import ROOM_BOARD_Z
+
+    rooms = [r.name for r in office.rooms if r.kind in ("office", "meeting")]
+    boards = [o for o in office.objects if o.kind == "notice_board" and not o.room.startswith("corridor")]
+    assert sorted(o.room for o in boards) == sorted(rooms)
+    assert all(o.z == ROOM_BOARD_Z and not o.blocks_laser for o in boards)
+    labels = [o.label for o in office.objects if o.kind == "notice_board"]
+    assert len(set(labels)) == len(labels)  # no two boards of the floor show the same notes
+    assert not [o for o in scene_of("twins").objects if o.kind == "notice_board"]

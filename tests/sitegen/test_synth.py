@@ -35,7 +35,7 @@ MICRO = {
     "identity.wings": 2, "identity.wing_colours": True, "identity.room_plates": True,
     "identity.unique_pictures": True, "identity.notice_boards": True, "identity.escape_plans": True,
     "identity.signs": True, "identity.room_types": True, "identity.desk_clutter": True,
-    "identity.outside_views": True,
+    "identity.outside_views": True, "identity.painted_walls": True, "identity.room_boards": True,
 }
 
 
