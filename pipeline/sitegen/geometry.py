@@ -101,7 +101,7 @@ def structure_meshes(scene: Scene, library) -> list[RenderMesh]:
         tile = _tile(library, "wall", wall.material % len(wall_tex))  # one repeat size per wall, whatever it wears
         dx, dy = wall.direction
         for a0, a1, z0, z1 in wall_pieces(wall):
-            if not scene.wings:
+            if not scene.wings and not scene.painted:
                 by_material[(wall.material, (1.0, 1.0, 1.0))].extend(_box_faces(wall, a0, a1, z0, z1, tile))
                 continue
             n = max(1, math.ceil((a1 - a0) / PAINT_PIECE_M))

@@ -130,15 +130,17 @@ DADO_RAIL_M = 0.04  # a darker rail on top of a corridor's dado
 def surface_bands(scene: Scene, x: float, y: float, n_materials: int) -> list[tuple[float, int, tuple]]:
     """The wall surface facing the point (x, y) as bands from the floor up: (top of the band in metres, material,
     tint), the last band reaching the ceiling. Unpainted: one band, `surface_at`'s. Painted (`scene.painted`):
-    rooms in their paint; corridors light above a dado in their wing's full colour (a real building's colour
-    scheme: the colour reads as colour on smooth paint, where a tinted roughcast reads as texture)."""
-    material, tint = surface_at(scene, x, y, n_materials)
+    rooms in their paint (white without one); corridors light above a dado in their wing's full colour (a real
+    building's colour scheme: the colour reads as colour on smooth paint, where a tinted roughcast reads as
+    texture), white without wings."""
     if not scene.painted:
-        return [(math.inf, material, tint)]
+        return [(math.inf, *surface_at(scene, x, y, n_materials))]
     name, _ = scene.room_at(x, y)
+    if name in scene.paint:
+        return [(math.inf, PAINT, scene.paint[name])]
     wing = scene.wing_at(x, y)
-    if name in scene.paint or wing is None:
-        return [(math.inf, PAINT, tint)]
+    if wing is None or (name and not name.startswith("corridor")):  # no wings, or a room without a colour: white
+        return [(math.inf, PAINT, (1.0, 1.0, 1.0))]
     colour = np.asarray(wing.colour)
     light = tuple(float(v) for v in 0.82 + 0.18 * colour)
     if scene.dado_height <= 0:

@@ -219,3 +219,21 @@ def test_every_office_and_meeting_room_has_a_pinboard_of_its_own(office):
     labels = [o.label for o in office.objects if o.kind == "notice_board"]
     assert len(set(labels)) == len(labels)  # no two boards of the floor show the same notes
     assert not [o for o in scene_of("twins").objects if o.kind == "notice_board"]
+
+
+def test_painted_walls_alone_paint_a_floor_without_wings_white():
+    from pipeline.sitegen.geometry import structure_meshes
+    from pipeline.sitegen.identity import PAINT, surface_bands
+
+    plain = scene_of("twins", overrides={"identity.painted_walls": True})
+    assert plain.painted and not plain.wings and not plain.paint
+    for room in plain.rooms:
+        assert surface_bands(plain, room.rect.cx, room.rect.cy, 5) == [(math.inf, PAINT, (1.0, 1.0, 1.0))]
+
+    class Library:
+        textures = {"wall": [np.full((4, 4, 3), 200, np.uint8)] * 5, "floor": [np.zeros((4, 4, 3), np.uint8)] * 3,
+                    "ceiling": [np.zeros((4, 4, 3), np.uint8)]}
+
+    walls = [m for m in structure_meshes(plain, Library) if m.texture.shape[0] == 128]
+    assert len(walls) == 1 and walls[0].colour == (1.0, 1.0, 1.0)  # one white paint, no library texture left
+    assert not [m for m in structure_meshes(plain, Library) if m.texture is Library.textures["wall"][0]]
