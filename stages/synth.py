@@ -14,7 +14,8 @@ HELP = """Generate and render a reference office floor as a site capture directo
 The floor (corridor loops, rows of similar rooms, doors, windows, desks, chairs, posters, extinguishers,
 bins, plants, exit signs) comes from a preset in configs/sites/ (tiny; office, with the identity cues of
 a real building: wings in their colours, room plates, a picture of its own on every poster, escape plans,
-signs, notice boards, kitchens, desk clutter, outside views; twins, the same floor without them; paper)
+signs, notice boards, kitchens, desk clutter, outside views, painted
+walls with wing-coloured dados, a pinboard in every room; twins, the same floor without them; paper)
 and a seed; the same preset and seed give the same site. Cues switch one by one (--set
 identity.room_plates=false), camera realism too (--set camera.effects=realistic, or
 --set camera.effects.noise.enabled=true for one effect): docs/reference-site.md.
