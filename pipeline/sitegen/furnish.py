@@ -9,7 +9,8 @@ regular spacing on corridor walls, an exit sign over every exterior door.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 
@@ -35,19 +36,21 @@ class _Placer:
 
     def add(self, cls: str, kind: str, x: float, y: float, z: float, yaw: float, room: str, *,
             size: tuple[float, float, float] | None = None, blocks: bool = True, texture: int = -1,
-            label: str = "", variant: int | None = None) -> None:
+            label: str | Callable[[float, float, float], str] = "", variant: int | None = None) -> None:
+        """Append an object; a callable `label` is given the object's x, y and yaw (a cue showing where it hangs)."""
         if cls and cls not in self.scene.classes:
             cls = ""  # a class the site does not detect is still furniture
         if variant is None:
             variant = int(self.rng.integers(0, self.variants))
+        x, y, yaw = float(x), float(y), float(math.atan2(math.sin(yaw), math.cos(yaw)))
         self.scene.objects.append(SceneObject(
-            instance_id=len(self.scene.objects) + 1, cls=cls, kind=kind, x=float(x), y=float(y), z=float(z),
-            yaw=float(math.atan2(math.sin(yaw), math.cos(yaw))), size=size or _SIZES[kind],
-            variant=variant, blocks_laser=blocks, room=room, texture=texture, label=label,
+            instance_id=len(self.scene.objects) + 1, cls=cls, kind=kind, x=x, y=y, z=float(z), yaw=yaw,
+            size=size or _SIZES[kind], variant=variant, blocks_laser=blocks, room=room, texture=texture,
+            label=label(x, y, yaw) if callable(label) else label,
         ))
 
     def on_wall(self, cls: str, kind: str, rect: Rect, side: str, along: float, z: float, room: str,
-                blocks: bool = False, texture: int = -1, label: str = "",
+                blocks: bool = False, texture: int = -1, label: str | Callable[[float, float, float], str] = "",
                 shifts: tuple[float, ...] = (0.0, 0.6, -0.6, 1.2, -1.2)) -> bool:
         """An object against the inside of `side` of `rect`, `along` metres from the side's start, slid by the
         first of `shifts` that keeps it off doors, windows and fixtures; whether it found a place."""
@@ -254,9 +257,8 @@ def _furnish_corridor(p: _Placer, room: Room, cue_rng) -> None:
                 if not any(a - 0.2 < pos + width / 2 and pos - width / 2 < b + 0.2 for a, b in blocked):
                     tex = int(rng.integers(0, f.poster_pictures)) if kind == "poster" else -1
                     cls = "" if kind in identity.SIGNAGE_KINDS else kind
-                    if p.on_wall(cls, kind, r, side, along, z, room.name, blocks=blocks, texture=tex) and not cls:
-                        o = p.scene.objects[-1]
-                        p.scene.objects[-1] = replace(o, label=identity.cue_label(p.scene, kind, o.x, o.y, o.yaw, 0))
+                    label = partial(identity.cue_label, p.scene, kind, k=0) if not cls else ""
+                    p.on_wall(cls, kind, r, side, along, z, room.name, blocks=blocks, texture=tex, label=label)
                     blocked.append((pos - width / 2, pos + width / 2))
                 along += spacing * rng.uniform(0.7, 1.3)
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 
@@ -202,11 +203,8 @@ def corridor_cues(p, room: Room, spec, blocked: list[tuple[float, float]], rng: 
                     continue
                 if any(a - 0.15 < pos + w / 2 and pos - w / 2 < b + 0.15 for a, b in blocked):
                     continue
-                before = len(p.scene.objects)
-                p.on_wall("", kind, r, side, along, HEIGHTS[kind], room.name, blocks=False, shifts=(0.0,))
-                if len(p.scene.objects) > before:
-                    o = p.scene.objects[-1]
-                    p.scene.objects[-1] = replace(o, label=cue_label(p.scene, kind, o.x, o.y, o.yaw, j * 2 + s))
+                if p.on_wall("", kind, r, side, along, HEIGHTS[kind], room.name, blocks=False, shifts=(0.0,),
+                             label=partial(cue_label, p.scene, kind, k=j * 2 + s)):
                     blocked.append((pos - w / 2, pos + w / 2))
                     break
 
@@ -253,9 +251,7 @@ def room_board(p, room: Room, sides: list[str]) -> None:
         length = room.rect.w if side in ("north", "south") else room.rect.h
         for shift in (0.0, 0.8, -0.8):
             if p.on_wall("", "notice_board", room.rect, side, length / 2 + shift, ROOM_BOARD_Z, room.name,
-                         blocks=False, shifts=(0.0,)):
-                o = p.scene.objects[-1]
-                p.scene.objects[-1] = replace(o, label=cue_label(p.scene, "notice_board", o.x, o.y, o.yaw, 0))
+                         blocks=False, shifts=(0.0,), label=partial(cue_label, p.scene, "notice_board", k=0)):
                 return
 
 
