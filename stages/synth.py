@@ -30,7 +30,9 @@ dropouts, people and moved chairs, an image per step, kidnappings flagged), cont
 synth_report.json, synth_timing.json, config.yaml and ATTRIBUTION.md. `siteloc ingest` takes the directory as it is.
 
 --change writes the same building after a change (moved furniture, new posters, new notes on the
-boards, other lighting; plates and signs stay).
+boards, other lighting; plates and signs stay). --change-area ROOM or ROOM/AREA changes only there (the
+lighting stays). --area ROOM or ROOM/AREA captures only the stops there, with the full site's stop ids and all
+the runs: the re-capture of changed areas that `siteloc update` merges into a site database.
 --config picks the synth section of a preset in configs/ (demo: office; ci: a micro tiny site; paper:
 paper) and --preset / --seed / --set override it. --set overrides any site preset key, e.g.
 --set camera.width=320 --set camera.height=240 --set runs.query_runs=5.
@@ -57,6 +59,17 @@ def synth(
     change: Annotated[
         bool, typer.Option("--change", help="Write the building after an environment change.")
     ] = False,
+    change_area: Annotated[
+        list[str] | None,
+        typer.Option("--change-area", show_default=False,
+                     help="Change only this room or room/area (repeatable; implies --change, lighting unchanged)."),
+    ] = None,
+    area: Annotated[
+        list[str] | None,
+        typer.Option("--area", show_default=False,
+                     help="Capture only the stops in this room or room/area (repeatable): a re-capture for "
+                          "`siteloc update`."),
+    ] = None,
     strict_assets: Annotated[
         bool, typer.Option("--strict-assets", help="Fail instead of falling back to procedural shapes.")
     ] = False,
@@ -83,7 +96,8 @@ def synth(
         cfg = load(config, None).synth
         site = load_site_preset(preset or cfg.site, {**cfg.preset_overrides, **parse_overrides(overrides)})
         path = run_synth(site, outputs={"out": out}, seed=cfg.seed if seed is None else seed, change=change,
-                         force=force, allow_fallback=not strict_assets, workers=workers)
+                         force=force, allow_fallback=not strict_assets, workers=workers, areas=tuple(area or ()),
+                         change_areas=tuple(change_area or ()))
         rep = json.loads((path / "synth_report.json").read_text())
         timing = json.loads((path / "synth_timing.json").read_text())
         typer.echo(

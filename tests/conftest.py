@@ -7,7 +7,14 @@ afresh (more examples, random seed) when hunting for edge cases locally.
 
 import os
 
-import pytest
+# Under pytest-xdist each worker shares the cores with the others: torch's default of one OpenMP thread per
+# core makes n workers run n x cores spinning threads, and a 5 s training took 119 s beside another one.
+# Each worker gets its share of the cores (before torch is imported; subprocesses inherit it).
+if os.environ.get("PYTEST_XDIST_WORKER_COUNT"):
+    _share = max(1, (os.cpu_count() or 1) // int(os.environ["PYTEST_XDIST_WORKER_COUNT"]))
+    os.environ.setdefault("OMP_NUM_THREADS", str(_share))
+
+import pytest  # noqa: E402
 from hypothesis import settings
 
 settings.register_profile("default", derandomize=True, print_blob=True)

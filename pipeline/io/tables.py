@@ -176,9 +176,18 @@ MULTILAYER = pa.schema(
     ]
 )
 
+# The content hash of every image an extraction described, so a later one can reuse its rows (`extract --reuse`).
+IMAGE_HASHES = pa.schema(
+    [
+        pa.field("image_id", pa.string(), nullable=False),
+        pa.field("sha256", pa.string(), nullable=False),
+    ]
+)
+
 SCHEMAS: dict[str, pa.Schema] = {"images": IMAGES, "boxes": BOXES, "runs": RUNS, "estimates": ESTIMATES,
                                  "ipa": IPA, "rpa": RPA, "catalog": CATALOG, "frames": FRAMES,
-                                 "sequences": SEQUENCES, "multilayer": MULTILAYER, "prior_db": MULTILAYER}
+                                 "sequences": SEQUENCES, "multilayer": MULTILAYER, "prior_db": MULTILAYER,
+                                 "image_hashes": IMAGE_HASHES}
 
 
 def _contract(kind: str, table: pa.Table | None = None) -> pa.Schema:

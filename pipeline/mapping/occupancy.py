@@ -61,6 +61,12 @@ def _grid_frame(xs: np.ndarray, ys: np.ndarray, cfg: MappingConfig) -> tuple[flo
     return round(ox, 9), round(oy, 9), width, height
 
 
+def _inside(frame: tuple[float, float, int, int], res: float, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    ox, oy, width, height = frame
+    u, v = (x - ox) / res, (y - oy) / res
+    return (u >= 0) & (u < width) & (v >= 0) & (v < height)
+
+
 def _batches(cells_per_scan: np.ndarray, chunk_scans: int) -> list[tuple[int, int]]:
     """[start, stop) scan ranges of at most `chunk_scans` scans and (unless one scan alone has more)
     MAX_CELLS_PER_BATCH traversed cells."""
@@ -170,11 +176,14 @@ def build_occupancy_map(
     range_max: float,
     cfg: MappingConfig | None = None,
     *,
+    frame: tuple[float, float, int, int] | None = None,
     progress: bool = True,
 ) -> OccupancyMap:
     """Map from scans taken at known map_from_laser `poses` (N, 3); `ranges` (N, B), >= range_max = no return.
 
-    The grid covers the poses and every used endpoint plus `cfg.margin_m`; origin = lower-left corner.
+    The grid covers the poses and every used endpoint plus `cfg.margin_m`; origin = lower-left corner. With
+    `frame` = (origin_x, origin_y, width, height) the grid is that one (an existing map's, to patch it), and
+    beams from or to a point outside it are not used.
     """
     from pipeline.progress import progress_bar
 
@@ -185,7 +194,11 @@ def build_occupancy_map(
         raise ValueError(f"need poses (N, 3) and ranges (N, B) with N > 0, got {poses.shape} and {ranges.shape}")
     valid = valid_returns(ranges, range_max, cfg.max_range_m)
     ex, ey = beam_endpoints(poses, ranges, angle_min, angle_increment)
-    frame = _grid_frame(np.concatenate([poses[:, 0], ex[valid]]), np.concatenate([poses[:, 1], ey[valid]]), cfg)
+    if frame is None:
+        frame = _grid_frame(np.concatenate([poses[:, 0], ex[valid]]), np.concatenate([poses[:, 1], ey[valid]]), cfg)
+    else:
+        valid = valid & _inside(frame, cfg.resolution, ex, ey) & _inside(frame, cfg.resolution, poses[:, :1],
+                                                                         poses[:, 1:2])
     tracer = _Tracer(frame, cfg)
     # Cells each scan's beams cross (|d col| + |d row| + 1 per beam): the batch size in memory.
     crossings = (np.abs(ex - poses[:, 0:1]) + np.abs(ey - poses[:, 1:2])) / cfg.resolution + 2

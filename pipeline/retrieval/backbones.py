@@ -327,7 +327,25 @@ def save_checkpoint(bb: RetrievalBackbone, path: Path) -> Path:
     else:
         meta["gem_p"] = repr(float(bb.head.p.item()))
     save_file({k: v.detach().contiguous() for k, v in bb.state_dict().items()}, str(path), metadata=meta)
+    sort_header(Path(path))
     return Path(path)
+
+
+def sort_header(path: Path) -> None:
+    """Rewrite a safetensors file's JSON header with its keys sorted, in place.
+
+    safetensors serialises `__metadata__` from a Rust HashMap, in an order that changes from run to run, so
+    the same checkpoint would not give the same bytes. The header keeps its content and its length (JSON
+    padded with spaces to 8 bytes, as the format has it); the tensor data are not touched.
+    """
+    with open(path, "r+b") as fh:
+        n = int.from_bytes(fh.read(8), "little")
+        header = json.loads(fh.read(n))
+        text = json.dumps(header, sort_keys=True, separators=(",", ":")).encode()
+        if len(text) > n:  # cannot happen for a header safetensors wrote (same keys, same values)
+            raise ValueError(f"{path}: sorted header is longer than the written one")
+        fh.seek(8)
+        fh.write(text + b" " * (n - len(text)))
 
 
 def recorded_backbone(directory: Path) -> dict | None:

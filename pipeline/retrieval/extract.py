@@ -23,7 +23,9 @@ Whitening is not applied here: it is fitted on the database by `siteloc build-in
 extraction serves several whitenings. Images: the mapping stops of `images.parquet` and, with
 `include_runs`, the camera frames of the runs other than mapping runs (the query images). Work goes in chunks to
 `<out>.partial/`; an interrupted extraction resumes from its finished chunks when rerun with the same
-model, site and settings, and refuses (naming what differs) otherwise.
+model, site and settings, and refuses (naming what differs) otherwise. With `inputs['reuse']` (an earlier
+extraction), the rows of images whose content and describer are unchanged are copied from it
+(`pipeline.retrieval.reuse`), so an updated site costs only its new images.
 """
 
 from __future__ import annotations
@@ -148,6 +150,12 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
     if backbone is not None:  # (absent for the detector: its fingerprints, and so resumable runs, stay as they were)
         settings["backbone"] = {"name": backbone.name, "weights_sha256": backbone.weights_sha256}
     fingerprint = _fingerprint(model_dir, images, settings)
+    from pipeline.retrieval.reuse import HASHES_FILE, ReusedDescriptors, describer_key, image_hashes
+    from pipeline.sitegen.asset_cache import sha256_file
+
+    describer = describer_key(sha256_file(model_dir / "weights.safetensors"), settings)
+    sha = image_hashes(ingested, [i.image_id for i in images])
+    reuse = ReusedDescriptors(inputs["reuse"], describer) if inputs.get("reuse") else None
     partial = out.with_name(out.name + ".partial")
     plan = partial / "plan.json"
     if plan.is_file() and json.loads(plan.read_text()).get("fingerprint") != fingerprint:
@@ -158,19 +166,32 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
     chunks = [images[i:i + r.chunk] for i in range(0, len(images), r.chunk)]
     pool = None
     if engine == "onnx":
-        pool = onnx_describer(det, partial, rpa_proposals=r.rpa_proposals, rpa_min_score=r.rpa_min_score,
-                              samples=cfg.export.parity_images, backbone=backbone)
-        step = 4 * pool.workers
+        from pipeline.onnx_threads import thread_layout
 
-        def describe_batch(batch: list[ImageRecord]) -> list[ImageDescriptors]:
+        step = 4 * thread_layout()[0]
+
+        def compute(batch: list[ImageRecord]) -> list[ImageDescriptors]:
+            nonlocal pool
+            if pool is None:  # made when first needed: an extraction that reuses every image exports no graph
+                pool = onnx_describer(det, partial, rpa_proposals=r.rpa_proposals, rpa_min_score=r.rpa_min_score,
+                                      samples=cfg.export.parity_images, backbone=backbone)
             return pool([ingested / rec.image_id for rec in batch])
     else:
         step = r.batch
 
-        def describe_batch(batch: list[ImageRecord]) -> list[ImageDescriptors]:
+        def compute(batch: list[ImageRecord]) -> list[ImageDescriptors]:
             return describe(det, [load_image(ingested / rec.image_id) for rec in batch], r.rpa_proposals,
                             r.rpa_min_score, backbone=backbone)
-    where = "onnxruntime, cpu" if pool else det.device.type
+    computed: list[str] = []
+
+    def describe_batch(batch: list[ImageRecord]) -> list[ImageDescriptors]:
+        found = [reuse.get(sha[rec.image_id]) if reuse is not None else None for rec in batch]
+        todo = [rec for rec, f in zip(batch, found, strict=True) if f is None]
+        computed.extend(rec.image_id for rec in todo)
+        fresh = iter(compute(todo) if todo else [])
+        return [f if f is not None else next(fresh) for f in found]
+
+    where = "onnxruntime, cpu" if engine == "onnx" else det.device.type
     bar = progress_bar(total=len(images), desc=f"extracting ({where})", unit="img", enabled=progress)
     try:
         _extract_chunks(chunks, partial, describe_batch, step, bar)
@@ -192,11 +213,19 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
         for kind, table in merged.items():
             tables.write_table(tmp / f"{kind}.parquet", table, kind, meta)
         _write_catalog(tmp / "catalog.parquet", images)
+        ids = list(dict.fromkeys(i.image_id for i in images))
+        tables.write_table(tmp / HASHES_FILE, tables.to_table("image_hashes", {
+            "image_id": ids, "sha256": [sha[i] for i in ids]}), "image_hashes")
         write_text_atomic(tmp / "report.json", json.dumps({
             "images": len(images), "stop_images": sum(not i.split.startswith("run:") for i in images),
             "run_images": sum(i.split.startswith("run:") for i in images), "ipa_dim": int(dim),
             "regions": merged["rpa"].num_rows,
             "backbone": meta["backbone"], "device": str(det.device), "engine": engine,
+            "describer_sha256": describer,
+            # Images described by this run (a resumed run counts only the chunks it finished itself).
+            "computed_images": len(computed),
+            **({"reuse": {"from": str(inputs["reuse"]), "describer_matches": reuse.matches,
+                          "reused_images": len(images) - len(computed)}} if reuse is not None else {}),
             **({"retrieval_backbone": record} if record else {}),
             # Present when this run exported graphs: a resumed extraction whose chunks are all done has none.
             **({"onnx": {"workers": pool.workers, "threads_per_worker": pool.threads, "graphs": pool.graphs}}

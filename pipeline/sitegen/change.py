@@ -32,14 +32,31 @@ class ChangeSpec:
     tint: tuple[float, float, float] = (1.05, 1.0, 0.9)
 
 
+def area_keys(scene: Scene) -> set[str]:
+    """Every `room` and `room/area` label of the scene (what `areas` may name)."""
+    return {r.name for r in scene.rooms} | {f"{r.name}/{a}" for r in scene.rooms for a, _ in r.areas}
+
+
+def in_areas(scene: Scene, x: float, y: float, areas: tuple[str, ...]) -> bool:
+    """Whether a point lies in one of `areas` (room names or room/area labels); every point when it is empty."""
+    if not areas:
+        return True
+    room, area = scene.room_at(x, y)
+    return room in areas or f"{room}/{area}" in areas
+
+
 def change_scene(scene: Scene, seed: int, spec: ChangeSpec = ChangeSpec(), poster_pictures: int = 12,
-                 unique_pictures: bool = False) -> Scene:
+                 unique_pictures: bool = False, areas: tuple[str, ...] = ()) -> Scene:
     """A changed copy of `scene`: moved furniture, new and removed posters, fewer plants, notice boards
     with new notes. Room plates, escape plans and signs stay, as they do in buildings. With
     `unique_pictures`, a replaced or new poster shows a picture the site never showed (the pool's next).
+    With `areas` (room names or room/area labels), only objects standing in them change.
 
     Instance ids are renumbered densely; the returned scene's `name` gains a `-changed` suffix.
     """
+    unknown = sorted(set(areas) - area_keys(scene))
+    if unknown:
+        raise ValueError(f"no area {unknown} in the site; its areas are {', '.join(sorted(area_keys(scene)))}")
     rng = np.random.default_rng(seed + 104729)
     fresh = iter(range(sum(o.cls == "poster" for o in scene.objects), 1 << 30))
 
@@ -48,6 +65,9 @@ def change_scene(scene: Scene, seed: int, spec: ChangeSpec = ChangeSpec(), poste
 
     kept: list[SceneObject] = []
     for obj in scene.objects:
+        if not in_areas(scene, obj.x, obj.y, areas):
+            kept.append(obj)
+            continue
         if obj.kind == "notice_board" and rng.random() < spec.board_update_share:
             obj = replace(obj, label=obj.label.rsplit(":", 1)[0] + ":v1")  # the notes are new ones
 
@@ -70,7 +90,8 @@ def change_scene(scene: Scene, seed: int, spec: ChangeSpec = ChangeSpec(), poste
                 obj = candidate
         kept.append(obj)
     # New posters on corridor walls: copies of existing posters slid along their wall with new pictures.
-    posters = [o for o in kept if o.cls == "poster" and o.room.startswith("corridor")]
+    posters = [o for o in kept if o.cls == "poster" and o.room.startswith("corridor") and
+               in_areas(scene, o.x, o.y, areas)]
     for obj in rng.permutation(len(posters))[: max(1, len(posters) // 5)] if posters else []:
         src = posters[int(obj)]
         dx, dy = -math.sin(src.yaw), math.cos(src.yaw)

@@ -158,14 +158,16 @@ def default_workers() -> int:
 _WORKER: dict = {}
 
 
-def _start_worker(preset_json: dict, seed: int, change: bool, allow_fallback: bool, root: str) -> None:
+def _start_worker(preset_json: dict, seed: int, change: bool, allow_fallback: bool, root: str,
+                  change_areas: tuple[str, ...] = ()) -> None:
     import os
 
     os.environ["LP_NUM_THREADS"] = "1"  # read when the EGL context is created, below
     from pipeline.sitegen.presets import SitePreset
 
     preset = SitePreset.model_validate(preset_json)
-    _WORKER["ctx"], _ = open_render_context(preset, seed, change, allow_fallback, Path(root))  # lives with the process
+    _WORKER["ctx"], _ = open_render_context(preset, seed, change, allow_fallback, Path(root),  # lives with the process
+                                            change_areas=change_areas)
 
 
 def _work(batch):
@@ -178,7 +180,8 @@ def _develop(batch):
     return develop_frames(_WORKER["ctx"], views, gains)
 
 
-def open_render_context(preset, seed: int, change: bool, allow_fallback: bool, root: Path, scene=None, library=None):
+def open_render_context(preset, seed: int, change: bool, allow_fallback: bool, root: Path, scene=None, library=None,
+                        change_areas: tuple[str, ...] = ()):
     """A renderer with the site's scene uploaded, and the context `render_views` needs; returns (ctx, renderer)
     (close the renderer when done)."""
     from pipeline.sitegen.assets import load_assets
@@ -187,7 +190,7 @@ def open_render_context(preset, seed: int, change: bool, allow_fallback: bool, r
     from pipeline.sitegen.render import Renderer
     from pipeline.sitegen.synth import build_scene, intrinsics_of
 
-    scene = scene if scene is not None else build_scene(preset, seed, change)
+    scene = scene if scene is not None else build_scene(preset, seed, change, change_areas)
     library = library if library is not None else load_assets(tuple(preset.furnishing.classes),
                                                               allow_fallback=allow_fallback)
     k = intrinsics_of(preset)
@@ -221,7 +224,7 @@ class RenderPool:
     """
 
     def __init__(self, preset, seed: int, change: bool, allow_fallback: bool, root: Path, *, workers: int,
-                 scene=None, library=None):
+                 scene=None, library=None, change_areas: tuple[str, ...] = ()):
         self.workers, self.ctx, self._renderer, self._pool = int(workers), None, None, None
         if self.workers > 1:
             import multiprocessing
@@ -235,7 +238,7 @@ class RenderPool:
 
             self._pool = ProcessPoolExecutor(
                 self.workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
-                initargs=(preset.model_dump(mode="json"), seed, change, allow_fallback, str(root)))
+                initargs=(preset.model_dump(mode="json"), seed, change, allow_fallback, str(root), tuple(change_areas)))
         else:
             self.ctx, self._renderer = open_render_context(preset, seed, change, allow_fallback, Path(root), scene,
                                                            library)

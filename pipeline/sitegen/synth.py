@@ -95,7 +95,8 @@ def preset_record(preset: SitePreset) -> dict:
     return dump
 
 
-def build_scene(preset: SitePreset, seed: int, change: bool):
+def build_scene(preset: SitePreset, seed: int, change: bool, change_areas: tuple[str, ...] = ()):
+    """The site's scene; with `change`, after the environment change (only in `change_areas` when given)."""
     from pipeline.sitegen.change import change_scene
     from pipeline.sitegen.furnish import furnish_scene
     from pipeline.sitegen.layout import generate_plan
@@ -103,16 +104,32 @@ def build_scene(preset: SitePreset, seed: int, change: bool):
     scene = furnish_scene(generate_plan(preset, seed), preset, seed)
     if change:
         scene = change_scene(scene, seed, poster_pictures=preset.furnishing.poster_pictures,
-                             unique_pictures=preset.identity.unique_pictures)
+                             unique_pictures=preset.identity.unique_pictures, areas=tuple(change_areas))
     return scene
+
+
+def check_areas(scene, areas: tuple[str, ...], option: str) -> None:
+    """Refuse area labels the site does not have, naming the option and the labels it has."""
+    from pipeline.errors import InputError, Problem
+    from pipeline.sitegen.change import area_keys
+
+    unknown = sorted(set(areas) - area_keys(scene))
+    if unknown:
+        known = sorted(area_keys(scene))
+        raise InputError(f"{option}: no such area {unknown}", [Problem(
+            option, f"the site has no room or area {', '.join(unknown)}",
+            fix=f"name a room or a room/area of the site: {', '.join(known[:12])}" + (" ..." if len(known) > 12
+                                                                                     else ""))])
 
 
 def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, change: bool = False,
               force: bool = False, progress: bool = True, allow_fallback: bool = True,
-              workers: int | None = None) -> Path:
+              workers: int | None = None, areas: tuple[str, ...] = (), change_areas: tuple[str, ...] = ()) -> Path:
     """Write the reference site of `preset` to `outputs['out']`; returns that directory. `workers`: rendering
     processes (`pipeline.sitegen.render_pool`; None: the usable cores, at most 4; 1: this process). The
-    site written does not depend on it."""
+    site written does not depend on it. `areas`: capture only the stops in these rooms or room/areas (a
+    re-capture; stop ids and views stay the full site's). `change_areas`: the change happens only there (it
+    implies `change`; the lighting stays the same, as it is the building's)."""
     from pipeline.progress import progress_bar
     from pipeline.sitegen.assets import load_assets
     from pipeline.sitegen.laser import rasterise_map
@@ -120,10 +137,19 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
     from pipeline.sitegen.trajectories import sample_stops
 
     t_start = time.perf_counter()
-    scene = build_scene(preset, seed, change)
+    areas, change_areas = tuple(areas), tuple(change_areas)
+    change = change or bool(change_areas)
+    relit = change and not change_areas
+    base = build_scene(preset, seed, False)
+    check_areas(base, areas, "--area")
+    check_areas(base, change_areas, "--change-area")
+    scene = build_scene(preset, seed, change, change_areas) if change else base
     library = load_assets(tuple(preset.furnishing.classes), allow_fallback=allow_fallback)
     occ_map = rasterise_map(scene, preset.map_resolution)
-    stops = sample_stops(scene, occ_map, spacing=preset.stops.spacing, clearance=preset.stops.clearance,
+    # The capture plan: a change of some areas keeps the building's stops (the team re-captures them), so
+    # their ids match the unchanged site's; a whole-building change resamples them on the new map.
+    plan_scene, plan_map = (base, rasterise_map(base, preset.map_resolution)) if change_areas else (scene, occ_map)
+    stops = sample_stops(plan_scene, plan_map, spacing=preset.stops.spacing, clearance=preset.stops.clearance,
                          jitter=preset.stops.jitter, seed=seed)
     k = intrinsics_of(preset)
     rng = np.random.default_rng(seed + 31)
@@ -133,12 +159,14 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
     stats = {"images": 0, "render_s": 0.0, "effects_s": 0.0, "workers": workers}
     with atomic_dir(out, force=force) as tmp:
         with RenderPool(preset, seed, change, allow_fallback, tmp, workers=workers, scene=scene,
-                        library=library) as pool:
+                        library=library, change_areas=change_areas) as pool:
             offsets = [2 * math.pi * v / preset.camera.views for v in range(preset.camera.views)]
             rows, coco_images, coco_anns, batches = [], [], [], []
             for s, (x, y, heading) in enumerate(stops):
-                lighting = _lighting(preset, scene, rng, change)  # drawn in stop order, whoever renders
+                lighting = _lighting(preset, scene, rng, relit)  # drawn in stop order, whoever renders
                 room, area = scene.room_at(x, y)
+                if areas and room not in areas and f"{room}/{area}" not in areas:
+                    continue  # not re-captured: its lighting was drawn all the same, so the others keep theirs
                 views = []
                 for v, off in enumerate(offsets):
                     theta = math.atan2(math.sin(heading + off), math.cos(heading + off))
@@ -149,6 +177,12 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
                     coco_images.append({"id": len(coco_images) + 1, "file_name": rel, "width": k.width,
                                         "height": k.height})
                 batches.append((lighting, views))
+            if not batches:
+                from pipeline.errors import InputError, Problem
+
+                raise InputError(f"--area {', '.join(areas)}: no capture stop there", [Problem(
+                    "--area", "no stop of the site lies in these areas", fix="name rooms the stops cover (see "
+                    "the room and area columns of the full site's captures.csv)")])
             rendered = pool.map(batches)
             for image_id, r in enumerate(
                     (r for batch in progress_bar(rendered, total=len(batches), desc="rendering stops",
@@ -163,7 +197,7 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
                                       "area": (b.x2 - b.x1) * (b.y2 - b.y1), "iscrowd": 0,
                                       "instance_id": b.instance_id, "visible_share": round(b.visible_share, 3)})
             run_report = _write_runs(tmp, preset, scene, occ_map, stops, pool, rng, seed, change, stats,
-                                     progress)
+                                     progress, relit)
         shutil.rmtree(tmp / STASH, ignore_errors=True)  # empty by now: every stashed frame was developed
         with (tmp / "captures.csv").open("w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=["image", "stop_id", "view", "x", "y", "theta", "room", "area"])
@@ -178,7 +212,8 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
         write_text_atomic(tmp / "ATTRIBUTION.md", _attribution_md(library))
         report = {
             "site": scene.name, "preset": preset.name, "seed": seed, "changed": change,
-            "stops": len(stops), "capture_images": len(rows),
+            "change_areas": list(change_areas), "areas": list(areas),
+            "stops": len(batches), "stops_of_the_site": len(stops), "capture_images": len(rows),
             "map": {"width_cells": int(occ_map.grid.shape[1]), "height_cells": int(occ_map.grid.shape[0]),
                     "resolution": occ_map.resolution},
             "objects_per_class": scene.class_counts(), "boxes_per_class": _count_boxes(coco_anns, preset),
@@ -199,6 +234,7 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
         write_text_atomic(tmp / "synth_timing.json", json.dumps(timing, indent=2) + "\n")
         write_text_atomic(tmp / "config.yaml", yaml.safe_dump(
             {"stage": "synth", "siteloc_version": __version__, "seed": seed, "change": change,
+             "change_areas": list(change_areas), "areas": list(areas),
              "preset": preset_record(preset)}, sort_keys=False))
     return out
 
@@ -236,7 +272,8 @@ def run_blurs(run, intrinsics, spec) -> list:
     return out
 
 
-def _write_runs(tmp: Path, preset, scene, occ_map, stops, pool, rng, seed, change, stats, progress) -> dict:
+def _write_runs(tmp: Path, preset, scene, occ_map, stops, pool, rng, seed, change, stats, progress,
+                relit: bool) -> dict:
     from pipeline.progress import progress_bar
     from pipeline.sitegen.camera_effects import AutoExposure
     from pipeline.sitegen.laser import LaserScanner, displace_furniture, laser_poses, laser_world_grid, walking_people
@@ -289,7 +326,7 @@ def _write_runs(tmp: Path, preset, scene, occ_map, stops, pool, rng, seed, chang
         scanner = LaserScanner(world, beams=lz.beams, fov_deg=lz.fov_deg, range_max=lz.range_max,
                                noise_sigma=lz.noise_sigma, dropout=lz.dropout, seed=run_seed)
         ranges = scanner.cast_many(laser_poses(run.gt), discs=people)
-        lighting = _lighting(preset, scene, rng, change)
+        lighting = _lighting(preset, scene, rng, relit)
         blurs = run_blurs(run, k_site, effects.motion_blur)  # every run frame: the robot drives while exposing
         views = [View((float(x), float(y), preset.camera.height_m, float(theta)),
                       f"images/runs/{run.name}/{i:04d}{suffix}", False, frame=(1, int(change), k, i), blur=blurs[i],

@@ -130,6 +130,23 @@ def test_room_map_does_not_depend_on_chunk_size():
     np.testing.assert_array_equal(a.grid, b.grid)
 
 
+def test_a_given_frame_maps_on_that_grid_and_ignores_beams_that_leave_it():
+    occ, poses, ranges = _room(n_scans=20, resolution=0.1)
+    frame = (occ.origin_x, occ.origin_y, occ.width, occ.height)
+    same = build_occupancy_map(poses, ranges, -math.pi / 2, INC, RANGE_MAX, MappingConfig(resolution=0.1),
+                               frame=frame, progress=False)
+    np.testing.assert_array_equal(same.grid, occ.grid)
+    # The left half of that grid: cells there see only the beams that stay in it, so no wall of the right half
+    # is folded onto its border, and what it holds agrees with the full map wherever it observed anything.
+    half = build_occupancy_map(poses, ranges, -math.pi / 2, INC, RANGE_MAX, MappingConfig(resolution=0.1),
+                               frame=(occ.origin_x, occ.origin_y, occ.width // 2, occ.height), progress=False)
+    assert half.grid.shape == (occ.height, occ.width // 2)
+    seen = half.grid != UNKNOWN
+    border = half.grid[:, -1] == OCCUPIED
+    assert seen.any() and (occ.grid[:, occ.width // 2 - 1][border] == OCCUPIED).all()
+    assert np.mean(half.grid[seen] == occ.grid[:, : occ.width // 2][seen]) > 0.97
+
+
 def test_endpoint_share_tolerance_and_outside():
     grid = np.zeros((10, 10), dtype=np.int8)
     grid[5, 5] = OCCUPIED

@@ -3,6 +3,7 @@ place-recognition heads, and refusals of bad files. No detector needed: everythi
 
 from __future__ import annotations
 
+import json
 import pickle
 
 import numpy as np
@@ -131,6 +132,21 @@ def test_checkpoints_load_exactly_and_give_the_heads_output_as_ipa(head, tmp_pat
                tmp_path / "place.pt")
     with torch.no_grad():
         assert torch.equal(B.load_backbone("checkpoint", str(tmp_path / "place.pt"))(x)[1], want[1])
+
+
+def test_a_checkpoint_is_the_same_bytes_every_time_and_safetensors_reads_it(tmp_path):
+    """safetensors writes its metadata in a random order; save_checkpoint sorts the header."""
+    from safetensors import safe_open
+
+    bb = _randomised(B.assemble("lite0_s16", "netvlad", clusters=3))
+    paths = [B.save_checkpoint(bb, tmp_path / f"p{i}.safetensors") for i in range(6)]
+    assert len({p.read_bytes() for p in paths}) == 1
+    with safe_open(str(paths[0]), framework="pt") as f:  # the library's own reader
+        assert f.metadata()["clusters"] == "3" and f.metadata()["trunk"] == "lite0_s16"
+        assert all(torch.equal(f.get_tensor(k), v) for k, v in bb.state_dict().items())
+    n = int.from_bytes(paths[0].read_bytes()[:8], "little")
+    header = paths[0].read_bytes()[8:8 + n].decode()
+    assert list(json.loads(header)) == sorted(json.loads(header)) and n % 8 == 0
 
 
 def test_netvlad_is_intra_normalised_residuals_flattened_and_normalised():

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import hashlib
 import json
 import math
 import warnings
@@ -21,53 +20,11 @@ from pipeline.io.map_yaml import FREE, OCCUPIED, read_map
 from pipeline.mapping.occupancy import endpoint_occupied_share
 from pipeline.runtime.motion import wrap_angle
 from pipeline.sitegen.asset_types import AssetsUnavailableError
-from pipeline.sitegen.presets import load_site_preset
 from pipeline.sitegen.render import egl_available
 from pipeline.sitegen.synth import TIMING_FILE, run_synth
+from tests.sitegen.micro import MICRO, captures, digests, micro, synth
 
 pytestmark = pytest.mark.skipif(not egl_available(), reason="no headless EGL context on this machine")
-
-# The tiny preset shrunk so that one synth takes a few seconds: a smaller floor, sparser stops, small views.
-MICRO = {
-    "floor.size": [14.0, 13.0], "floor.band_depth": 3.2, "stops.spacing": 2.5, "camera.width": 96,
-    "camera.height": 72, "runs.steps_per_run": 14, "runs.kidnaps_per_query_run": 1,
-    # Every identity cue, so the capture contract, boxes and change are checked with them.
-    "identity.wings": 2, "identity.wing_colours": True, "identity.room_plates": True,
-    "identity.unique_pictures": True, "identity.notice_boards": True, "identity.escape_plans": True,
-    "identity.signs": True, "identity.room_types": True, "identity.desk_clutter": True,
-    "identity.outside_views": True, "identity.painted_walls": True, "identity.room_boards": True,
-}
-
-
-def micro(**extra):
-    return load_site_preset("tiny", {**MICRO, **extra})
-
-
-def synth(out: Path, seed: int = 3, preset=None, **kwargs) -> Path:
-    return run_synth(preset or micro(), outputs={"out": out}, seed=seed, progress=False, **kwargs)
-
-
-def digests(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file() and p.name != TIMING_FILE}
-
-
-@pytest.fixture(scope="module")
-def site(tmp_path_factory) -> Path:
-    return synth(tmp_path_factory.mktemp("synth") / "site", workers=2)  # rendered in two processes
-
-
-@pytest.fixture(scope="module")
-def ingested(site, tmp_path_factory) -> Path:
-    cfg = load_config("ci")
-    return run_ingest(cfg, inputs={"site": site}, outputs={"out": tmp_path_factory.mktemp("ing") / "out"},
-                      progress=False)
-
-
-def captures(site: Path) -> list[dict]:
-    with (site / "captures.csv").open(newline="") as fh:
-        return list(csv.DictReader(fh))
-
 
 # Every camera effect spelt out and off: the frames synth wrote before camera effects (JPEG 92).
 EFFECTS_OFF = {"camera.effects": {"distortion": {"enabled": False}, "vignetting": {"enabled": False},

@@ -1,0 +1,81 @@
+"""Descriptors of unchanged images taken from an earlier extraction (`siteloc extract --reuse`).
+
+After `siteloc update`, most images of a site are the same files as before. An image's IPA and RPA rows
+depend only on its content and on the describer: the detector's weights, the retrieval backbone, the
+engine and the RPA settings. So rows are keyed by the image's sha256 and reused when the earlier
+extraction's describer key equals this one; every other image is described afresh. The result is the
+extraction a full run would write, row for row.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import InputError, Problem
+from pipeline.io import tables
+from pipeline.retrieval.descriptors import ImageDescriptors
+
+HASHES_FILE = "image_sha256.parquet"
+
+
+def describer_key(weights_sha256: str, settings: dict) -> str:
+    """sha256 of what an image's descriptors depend on besides the image."""
+    keep = {k: settings[k] for k in ("rpa_proposals", "rpa_min_score", "engine", "backbone") if k in settings}
+    return hashlib.sha256((weights_sha256 + json.dumps(keep, sort_keys=True)).encode()).hexdigest()
+
+
+def image_hashes(ingested: Path, image_ids: list[str]) -> dict[str, str]:
+    """{image_id: sha256}: the stops' from images.parquet (ingest computed them), the run frames' from their files."""
+    from pipeline.sitegen.asset_cache import sha256_file
+
+    t = tables.read_table(Path(ingested) / "images.parquet", "images").select(["image_id", "sha256"]).to_pydict()
+    known = dict(zip(t["image_id"], t["sha256"], strict=True))
+    return {i: known.get(i) or sha256_file(Path(ingested) / i) for i in dict.fromkeys(image_ids)}
+
+
+class ReusedDescriptors:
+    """The rows of an earlier extraction, by image sha256; empty when its describer differs (`matches`)."""
+
+    def __init__(self, directory: Path, describer: str):
+        directory = Path(directory)
+        report_path = directory / "report.json"
+        if not report_path.is_file() or not (directory / HASHES_FILE).is_file():
+            raise InputError(f"{directory}: not an extraction this siteloc can reuse", [Problem(
+                str(directory), "no report.json or image_sha256.parquet",
+                fix="pass the --out of an earlier `siteloc extract` (extractions before image hashes were "
+                    "recorded cannot be reused: run without --reuse)")])
+        self.directory = directory
+        self.matches = json.loads(report_path.read_text()).get("describer_sha256") == describer
+        self._rows: dict[str, ImageDescriptors] = {}
+        if not self.matches:
+            return
+        sha = tables.read_table(directory / HASHES_FILE, "image_hashes").to_pydict()
+        by_id = dict(zip(sha["image_id"], sha["sha256"], strict=True))
+        ipa = tables.read_table(directory / "ipa.parquet", "ipa")
+        ipa_desc = tables.descriptor_matrix(ipa)
+        rpa = tables.read_table(directory / "rpa.parquet", "rpa")
+        rpa_desc = tables.descriptor_matrix(rpa)
+        r = rpa.drop(["descriptor"]).to_pydict()
+        regions: dict[str, list[int]] = {}
+        for k, image_id in enumerate(r["image_id"]):
+            regions.setdefault(image_id, []).append(k)
+        for row, image_id in enumerate(ipa.column("image_id").to_pylist()):
+            if image_id not in by_id:
+                continue
+            ks = regions.get(image_id, [])
+            self._rows[by_id[image_id]] = ImageDescriptors(
+                ipa=ipa_desc[row],
+                boxes=np.array([[r["x1"][k], r["y1"][k], r["x2"][k], r["y2"][k]] for k in ks],
+                               dtype=np.float32).reshape(-1, 4),
+                meta=[(r["source"][k], r["score"][k], r["class_id"][k]) for k in ks],
+                rpa=rpa_desc[ks] if ks else np.zeros((0, ipa_desc.shape[1]), np.float32))
+
+    def get(self, sha256: str) -> ImageDescriptors | None:
+        return self._rows.get(sha256)
+
+    def __len__(self) -> int:
+        return len(self._rows)
