@@ -465,6 +465,30 @@ class UpdateConfig(Strict):
                                    "changed areas (the resolution is always the site map's)")
 
 
+class CheckConfig(Strict):
+    """`siteloc check`: how well a bundle fits the building as it is now (docs/update.md#check)."""
+
+    position_m: float = Field(2.0, gt=0, description="a retrieved pose is right within this many metres ...")
+    heading_deg: float = Field(30.0, gt=0, le=180, description="... and this heading of the image's pose")
+    max_recall_drop: float = Field(0.25, gt=0, le=1, description="re-capture an area whose recall@4 falls this much "
+                                   "under the bundle's baseline (the area's own, else the whole site's)")
+    same_place_m: float = Field(0.3, gt=0, description="a database view within this many metres ...")
+    same_place_deg: float = Field(15.0, gt=0, le=180, description="... and degrees of a new image shows its place")
+    min_place_likeness: float = Field(0.5, ge=0, le=1, description="... or whose new views look like the bundle's "
+                                      "at the same place less than this: 1 unchanged, 0 no closer than a neighbouring "
+                                      "stop's view (the baseline's same-place similarity)")
+    max_map_drop: float = Field(0.15, gt=0, le=1, description="retrain the detector when its mAP@0.5 on the new "
+                                "images falls this much under the baseline's")
+    endpoint_tolerance_m: float = Field(0.1, ge=0, description="a scan endpoint within this of an occupied map "
+                                        "cell agrees with the map")
+    min_endpoint_share: float = Field(0.85, gt=0, le=1, description="update the map of an area whose new scan "
+                                      "endpoints agree with it less often than this ...")
+    map_change_m2: float = Field(0.25, ge=0, description="... or where the new scans see more than this many square "
+                                 "metres of new obstacles or of walls gone")
+    min_area_images: int = Field(6, ge=1, description="an area with fewer new images gets figures but no verdict")
+    min_area_endpoints: int = Field(200, ge=1, description="an area with fewer new scan endpoints: no map verdict")
+
+
 class SequenceConfig(Strict):
     """`siteloc frame-features`, `train-sequence`: the image-sequence LSTM of seed 000 section 3.3."""
 
@@ -547,6 +571,7 @@ class SitelocConfig(Strict):
     place: PlaceConfig = PlaceConfig()
     export: ExportConfig = ExportConfig()
     update: UpdateConfig = UpdateConfig()
+    check: CheckConfig = CheckConfig()
     sequence: SequenceConfig = SequenceConfig()
     prior: PriorConfig = PriorConfig()
     evaluate: EvaluateConfig = EvaluateConfig()

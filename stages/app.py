@@ -6,9 +6,11 @@ import typer
 
 from stages import (
     bag,
+    check,
     colmap,
     config_cmd,
     demo,
+    diff,
     evaluate,
     evaluate_detector,
     export,
@@ -57,6 +59,8 @@ app.command("frame-features", help=help_text(sequence.FRAMES_HELP))(sequence.fra
 app.command("train-sequence", help=help_text(sequence.TRAIN_HELP))(sequence.train_sequence)
 app.command("export", help=help_text(export.HELP))(export.export)
 app.command("update", help=help_text(update.HELP))(update.update)
+app.command("check", help=help_text(check.HELP))(check.check)
+app.command("diff", help=help_text(diff.HELP))(diff.diff)
 app.command("localize", help=help_text(localize.HELP))(localize.localize)
 app.command("evaluate", help=help_text(evaluate.HELP))(evaluate.evaluate)
 app.command("demo", help=help_text(demo.HELP))(demo.demo)

@@ -30,6 +30,13 @@ encoder as ONNX (checked against torch) and the area prior: with filter.seed_wit
 Localizer starts the filter over the free space of the first image's most probable (room, area) classes
 instead of around its Top-4 retrieved poses.
 
+With --parent (the previous bundle of the site), the bundle is its next version: by default the
+parent's version with its last number raised by one; the manifest names the parent (name, version,
+manifest sha256) and changelog.json / changelog.md say what changed against it: stops kept, added,
+removed and re-captured per room/area, map cells changed per area, and which inputs (detector,
+database, ingest, sequence model, area prior) were retrained or kept. `siteloc diff` prints the same
+comparison for any two bundles.
+
 Example: siteloc export models/office/detector data/office/index data/office/ingested --out bundles
 """
 
@@ -44,6 +51,9 @@ def export(
     prior: Annotated[Path | None, typer.Option(
         "--prior", help="An area prior (prior build): adds seeding the filter over (room, area) classes.",
         show_default=False)] = None,
+    parent: Annotated[Path | None, typer.Option(
+        "--parent", help="The previous bundle of this site: this one is its next version, with a changelog.",
+        show_default=False)] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Directory the bundle goes into.")] = Path("bundles"),
     version: Annotated[str | None,
                        typer.Option("--version", help="Bundle version \\[default: export.version].")] = None,
@@ -57,8 +67,14 @@ def export(
 
         from pipeline.bundle.export import run_export
 
+        if parent and not version:
+            from pipeline.bundle.diff import next_version
+            from pipeline.runtime.bundle import read_manifest
+
+            version = next_version(str(read_manifest(parent).get("bundle_version")))
         cfg = load(config, (set_ or []) + ([f"export.version={json.dumps(version)}"] if version else []))  # a string
-        inputs = {"model": model, "index": index, "data": data, **({"sequence": sequence} if sequence else {}),
+        inputs = {**({"parent": parent} if parent else {}),
+                  "model": model, "index": index, "data": data, **({"sequence": sequence} if sequence else {}),
                   **({"prior": prior} if prior else {})}
         bundle = run_export(cfg, inputs=inputs, outputs={"out": out}, force=force)
         manifest = json.loads((bundle / "manifest.json").read_text())
@@ -76,6 +92,13 @@ def export(
             pm = json.loads((bundle / "models" / "prior.json").read_text())
             typer.echo(f"area prior: {pm['encoder']['backbone']} {', '.join(pm['encoder']['layers'])}; ONNX vs torch "
                        f"{max(pm['parity']['max_abs_by_layer'].values()):.1e} (filter.seed_with=area_prior uses it)")
+        if parent:
+            log = manifest["changelog"]
+            typer.echo(f"against {manifest['parent']['name']}: areas changed {log['areas_changed'] or 'none'}; stops "
+                       f"{log['stops']['stops_added']} added, {log['stops']['stops_removed']} removed, "
+                       f"{log['stops']['stops_kept']} kept; map cells changed {log['map_cells_changed']}; inputs "
+                       + ", ".join(f"{k} {v}" for k, v in log["components"].items()))
+            echo_path("changelog", bundle / "changelog.md")
         echo_path("bundle", bundle)
         if cfg.export.archive:
             echo_path("archive", bundle.with_name(bundle.name + ".tar.gz"))

@@ -22,13 +22,26 @@ Interrupted training resumes from OUT.partial/checkpoint.pt (tensors only) when 
 arguments. Writes into --out: weights.safetensors, config.json (how to rebuild the model, classes, weights
 used), metrics.json (loss curve, validation loss, iterations/s) and config.yaml.
 
+After the building changes (`siteloc update`), --init-from OLD_MODEL fine-tunes an earlier train-detector
+output on the updated site instead of starting again from detector.weights: its weights.safetensors is loaded
+(tensors only, strictly), and its config.json must name the backbone, image sizes, anchors, NMS and classes this
+run builds, else nothing is trained. The frozen layers and batch norms still follow detector.weights (the
+weights themselves are not loaded). config.json records init_from (path and sha256 of the weights). It trains
+detector.iterations as configured; a short fine-tuning is --set detector.iterations=N.
+
 Example: siteloc train-detector data/reference/ingested --out models/detector
+
+Example: siteloc train-detector data/office/ingested-v2 --out models/detector-v2 --init-from models/detector
 """
 
 
 def train_detector(
     data: Annotated[Path, typer.Argument(help="An ingested site (output of siteloc ingest).", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)],
+    init_from: Annotated[Path | None, typer.Option(
+        "--init-from", help="Start from the weights of an earlier `siteloc train-detector` output (a directory with "
+        "weights.safetensors and config.json, built with this run's detector settings and classes) instead of "
+        "detector.weights.", show_default=False)] = None,
     config: ConfigOpt = "demo",
     set_: set_opt("detector.iterations=3000") = None,
     force: ForceOpt = False,
@@ -40,8 +53,8 @@ def train_detector(
         from pipeline.detection.train import run_train_detector
 
         cfg = load(config, set_)
-        result = run_train_detector(cfg, inputs={"data": data}, outputs={"out": out}, force=force,
-                                    progress=True)
+        inputs = {"data": data} if init_from is None else {"data": data, "init_from": init_from}
+        result = run_train_detector(cfg, inputs=inputs, outputs={"out": out}, force=force, progress=True)
         m = json.loads((result / "metrics.json").read_text())
         c = json.loads((result / "config.json").read_text())
         typer.echo(f"trained {c['builder']['backbone']} ({c['weights_source']}) on {m['train_images']} images: "

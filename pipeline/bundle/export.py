@@ -9,6 +9,10 @@ than the detector (`retrieval.backbone`, which must be the one the index was ext
 graph holds that backbone too, checked alike, and describer.json records it (`retrieval_backbone`); the
 database files are copied as they are (whitened, float32); `filter.yaml` carries the filter, retrieval
 and laser settings the runtime needs; `manifest.json` is written last with every file's sha256 and size.
+db/images.parquet names the database's stops (labels, poses, image sha256) and evaluation/baseline.json
+holds the bundle's own retrieval and detector figures per area on the ingest's held-out stops, which
+`siteloc check` compares new captures against; with `inputs['parent']` the bundle is the parent's next
+version and carries changelog.json / .md (pipeline.bundle.diff).
 The layout and the checks the runtime makes are in `pipeline.runtime.bundle`.
 """
 
@@ -25,6 +29,7 @@ from pathlib import Path
 import yaml
 
 from pipeline import __version__
+from pipeline.bundle.diff import STOPS_FILE
 from pipeline.bundle.provenance import provenance
 from pipeline.config import SitelocConfig
 from pipeline.errors import InputError, Problem
@@ -153,6 +158,51 @@ def export_prior(cfg: SitelocConfig, prior, prior_dir: Path, tmp: Path, images: 
     return meta
 
 
+def _parent(path: Path | None, version: str) -> tuple[Path, dict] | None:
+    """The verified parent bundle (directory) and its manifest, or None."""
+    if path is None:
+        return None
+    from pipeline.runtime.bundle import verify_bundle
+
+    manifest = verify_bundle(Path(path))
+    if str(manifest.get("bundle_version")) == version:
+        raise InputError(f"{path}: the parent has version {version}, the version this export would write",
+                         [Problem(str(Path(path) / MANIFEST), f"bundle_version {version}",
+                                  fix="give the new bundle another --version (by default the parent's, plus one)")])
+    return Path(path), manifest
+
+
+def write_stops(data: Path, catalog: list[str], path: Path) -> Path:
+    """db/images.parquet: the ingest's rows of the database images (stops, labels, poses, sha256), which
+    `siteloc diff` and `check` read to compare areas."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    from pipeline.io import tables
+
+    images = tables.read_table(data / "images.parquet", "images")
+    rows = images.filter(pc.is_in(images.column("image_id"), pa.array(catalog, pa.string())))
+    return tables.write_table(path, rows, "images", tables.table_metadata(images))
+
+
+def write_changelog(tmp: Path, parent: tuple[Path, dict], *, site: str, version: str, prov: dict) -> dict:
+    """changelog.json / .md of the bundle being written in `tmp` against `parent`; the manifest's lineage."""
+    from pipeline.bundle.diff import diff_bundles, diff_md, read_view
+    from pipeline.io.atomic import write_text_atomic
+
+    root, pmanifest = parent
+    files = {p.relative_to(tmp).as_posix(): sha256_of(p) for p in sorted(tmp.rglob("*")) if p.is_file()}
+    this = read_view(tmp, {"site": site, "bundle_version": version, "provenance": prov}, files)
+    this.name = f"{site}-{version}"
+    d = diff_bundles(read_view(root, pmanifest), this)
+    write_text_atomic(tmp / "changelog.json", json.dumps(d, indent=2) + "\n")
+    write_text_atomic(tmp / "changelog.md", diff_md(d))
+    return {"parent": {"name": root.name, "bundle_version": pmanifest.get("bundle_version"),
+                       "manifest_sha256": sha256_of(root / MANIFEST)},
+            "changelog": {"areas_changed": d["areas_changed"], "stops": d["stops"],
+                          "map_cells_changed": d["map"]["cells_changed"], "components": d["components"]}}
+
+
 def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path], force: bool = False,
                progress: bool = True) -> Path:
     """Write `<out>/<site>-<version>/` (+ .tar.gz); returns the bundle directory."""
@@ -175,11 +225,16 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
 
         _require([Path(inputs["prior"]) / f for f in PRIOR_FILES], "point --prior at `siteloc prior build`'s output")
         prior = AreaPrior.load(Path(inputs["prior"]))  # refuses a damaged prior before any export work
+    parent = _parent(inputs.get("parent"), cfg.export.version)
     site = data.name
     if (data / "site.yaml").is_file():
         from pipeline.io.site import read_site
 
         site = read_site(data / "site.yaml").name
+    if parent is not None and parent[1].get("site") != site:
+        raise InputError(f"{inputs['parent']}: the parent bundle is of site '{parent[1].get('site')}', this export "
+                         f"is of '{site}'", [Problem(str(Path(inputs["parent"]) / MANIFEST), "another site",
+                                                     fix="give --parent the previous bundle of this site")])
     name = f"{site}-{cfg.export.version}"
     out = Path(outputs["out"]) / name
     if out.exists() and not force:
@@ -227,9 +282,17 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
                     "prior": {"area_radius_m": cfg.prior.area_radius_m, "max_areas": cfg.prior.max_areas},
                     "laser": laser_settings(data), "camera": {"height": image_hw[0], "width": image_hw[1]}}
         write_text_atomic(tmp / "filter.yaml", yaml.safe_dump(settings, sort_keys=False))
+        write_stops(data, catalog, tmp / STOPS_FILE)
+        from pipeline.bundle.measure import write_baseline
+
+        write_baseline(tmp, data, settings, cfg, progress=progress)
+        prov = provenance({k: Path(v) for k, v in inputs.items() if v is not None and k != "parent"})
+        lineage = {}
+        if parent is not None:
+            lineage = write_changelog(tmp, parent, site=site, version=cfg.export.version, prov=prov)
         write_manifest(tmp, {
             "bundle_version": cfg.export.version, "site": site, "created": _created(), "code_version": code_version(),
-            "provenance": provenance({k: Path(v) for k, v in inputs.items() if v is not None}),
+            **lineage, "provenance": prov,
             "database": {"images": db_report.get("images"), "regions": db_report.get("regions"),
                          "whitening": db_report.get("whitening")},
             "inputs": {k: str(v) for k, v in inputs.items()}, "config": cfg.model_dump(mode="json")})

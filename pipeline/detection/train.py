@@ -12,6 +12,14 @@ output directory holds `weights.safetensors`, `config.json` (builder arguments, 
 iterations), `metrics.json` (loss curve, validation loss, timings), `headline.json` (loss_first,
 loss_last_50_mean, val_loss) and `plots/loss.csv` (`iteration,loss`: the training loss at each 0-based
 iteration, as `loss_history`), which DVC compares across runs (`pipeline.io.tracked`).
+
+With `inputs["init_from"]` (an earlier output of this stage, `--init-from`) training starts from that model's
+weights instead of `detector.weights`: after `siteloc update` the detector is fine-tuned on the updated site
+rather than trained again from ImageNet. The earlier model must have been built with the builder arguments and
+classes this run builds (checked before anything is trained or written); its `weights.safetensors` is loaded
+tensors-only and strictly. Which layers train and whether batch norms are frozen still follow the configured
+`detector.weights`, as without `--init-from`. `config.json` records `init_from` (path and the sha256 of the
+weights loaded), and the checkpoint fingerprint includes that sha256, so a resume never mixes two starts.
 """
 
 from __future__ import annotations
@@ -24,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.config import SitelocConfig, write_effective_config
-from pipeline.errors import SitelocError
+from pipeline.errors import InputError, Problem, SitelocError
 
 
 class TrainingError(SitelocError):
@@ -64,6 +72,9 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
         from pipeline.errors import OutputExistsError
 
         raise OutputExistsError(out)
+    init_dir = Path(inputs["init_from"]) if inputs.get("init_from") is not None else None
+    if init_dir is not None:
+        _init_files(init_dir)  # before reading the site: a mistyped path fails at once
     _, splits, classes = load_samples(Path(inputs["data"]))
     train, val = split_by_stop(splits.get("train", []), d.val_fraction, d.seed)
     train = [s for s in train if len(s.boxes)]
@@ -75,7 +86,22 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
                 anchor_sizes=tuple(d.anchor_sizes), rpn_post_nms_top_n_test=d.rpn_post_nms_top_n_test,
                 box_nms_thresh=d.box_nms_thresh,
                 frozen_batch_norm=d.weights is not None)
-    built = build_detector(weights=d.weights, **args)
+    init_from, init_state = (None, None) if init_dir is None else _init_from(init_dir, args, classes)
+    # With --init-from the configured weights are not loaded (they would be overwritten), but they still decide
+    # the frozen batch norms (in `args`) and the frozen layers, so the fine-tuning is the one they would give.
+    built = build_detector(weights=None if init_dir is not None else d.weights, **args)
+    weights_source = built.weights_source
+    if init_state is not None:
+        try:
+            built.model.load_state_dict(init_state, strict=True)
+        except RuntimeError as exc:
+            w = init_dir / "weights.safetensors"
+            raise InputError(f"--init-from {init_dir}: the weights do not fit the network in its config.json", [
+                Problem(str(w), str(exc).splitlines()[0],
+                        fix="point --init-from at a `siteloc train-detector` output whose files belong together")],
+            ) from None
+        weights_source = f"init-from: {init_dir} (weights.safetensors sha256 {init_from['weights_sha256'][:12]})"
+        del init_state
     device = pick_device(d.device)
     amp = d.amp and device.type == "cuda"
     model = built.model.to(device)
@@ -85,9 +111,9 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     partial = out.with_name(out.name + ".partial")
     ckpt_path = partial / "checkpoint.pt"
     start, history = 0, []
-    fingerprint = _fingerprint(d, train)
+    fingerprint = _fingerprint(d, train, init_from)
     ckpt = resume_state(ckpt_path, fingerprint, force=force, error=TrainingError,
-                        what="other detector settings or training images")
+                        what="other detector settings, training images or --init-from weights")
     if ckpt is not None:
         model.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
@@ -134,9 +160,11 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     with atomic_dir(out, force=force) as tmp:
         save_file({k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
                   str(tmp / "weights.safetensors"))
+        record = {"builder": args, "classes": classes, "weights_source": weights_source}
+        if init_from is not None:
+            record["init_from"] = init_from
         write_text_atomic(tmp / "config.json", json.dumps({
-            "builder": args, "classes": classes, "weights_source": built.weights_source,
-            "max_side": d.max_side, "iterations": d.iterations, "frozen": built.frozen,
+            **record, "max_side": d.max_side, "iterations": d.iterations, "frozen": built.frozen,
             "device": str(device), "mixed_precision": amp,
             "val_stops": sorted({s.stop_id for s in val})}, indent=2) + "\n")
         metrics = {
@@ -154,13 +182,87 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     return out
 
 
-def _fingerprint(d, train) -> str:
-    """What a checkpoint must share with this training to be resumed by it: the detector section and the
-    training images (a checkpoint of another training must never be silently continued)."""
+def _fingerprint(d, train, init_from: dict | None = None) -> str:
+    """What a checkpoint must share with this training to be resumed by it: the detector section, the
+    training images and, with --init-from, the sha256 of the weights it started from (a checkpoint of another
+    training must never be silently continued). Without --init-from the fingerprint is the one it always was."""
     import hashlib
 
     doc = {"detector": d.model_dump(mode="json"), "train": sorted(s.image_id for s in train)}
+    if init_from is not None:
+        doc["init_from_sha256"] = init_from["weights_sha256"]
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+
+
+_INIT_FIX = "point --init-from at a `siteloc train-detector` output (weights.safetensors + config.json)"
+
+
+def _init_files(init_dir: Path) -> tuple[Path, Path]:
+    """config.json and weights.safetensors of an --init-from directory, or InputError naming what is missing."""
+    files = (init_dir / "config.json", init_dir / "weights.safetensors")
+    if not init_dir.is_dir():
+        missing = [Problem(str(init_dir), "no such directory", fix=_INIT_FIX)]
+    else:
+        missing = [Problem(str(f), "missing", fix=_INIT_FIX) for f in files if not f.is_file()]
+    if missing:
+        raise InputError(f"--init-from {init_dir}: not a trained detector", missing)
+    return files
+
+
+# What to change when a builder argument of the --init-from model differs from this run's.
+_BUILDER_FIX = {
+    "num_classes": "the site's classes must be the model's",
+    "frozen_batch_norm": "frozen batch norms follow detector.weights (frozen unless it is null); set detector.weights "
+                         "as the model was trained (with --init-from those weights are not loaded)",
+}
+
+
+def _init_from(init_dir: Path, args: dict, classes: list[str]) -> tuple[dict, dict]:
+    """Check an --init-from model against the network this run builds; its record for config.json (path, sha256
+    of the weights) and its state dict (read with safetensors, never unpickled)."""
+    import hashlib
+
+    from safetensors import SafetensorError
+    from safetensors.torch import load as load_safetensors
+
+    cfg_path, weights_path = _init_files(init_dir)
+    try:
+        old = json.loads(cfg_path.read_text())
+        old_builder, old_classes = old["builder"], old["classes"]
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as exc:
+        raise InputError(f"--init-from {init_dir}: unreadable config.json", [
+            Problem(str(cfg_path), f"not a detector's config.json ({type(exc).__name__}: {exc})", fix=_INIT_FIX)],
+        ) from None
+    ours = json.loads(json.dumps(args))  # tuples as the JSON lists config.json holds
+    if not isinstance(old_builder, dict):
+        old_builder = {}
+    problems = []
+    for key in sorted(set(ours) | set(old_builder)):
+        if key not in old_builder or key not in ours or old_builder[key] != ours[key]:
+            theirs = repr(old_builder[key]) if key in old_builder else "no value"
+            mine = repr(ours[key]) if key in ours else "no value"
+            value = old_builder.get(key)
+            value = value if isinstance(value, str) else json.dumps(value, separators=(",", ":"))
+            fix = (f"--set detector.{key}={value} to fine-tune this model, or drop --init-from to train from "
+                   "detector.weights") if key in old_builder and key in ours else (
+                "the model was made by another version of siteloc: drop --init-from to train from detector.weights")
+            problems.append(Problem(
+                str(cfg_path), f"the model was built with {theirs}, this run builds {mine}", key=f"builder.{key}",
+                fix=_BUILDER_FIX.get(key, fix)))
+    if old_classes != classes:
+        problems.append(Problem(
+            str(cfg_path), f"the model detects {old_classes}, the site has {classes}", key="classes",
+            fix="fine-tune only on a site with the model's classes, or drop --init-from to train from "
+                "detector.weights"))
+    if problems:
+        raise InputError(f"--init-from {init_dir}: the model is not the network this run trains", problems)
+    data = weights_path.read_bytes()
+    try:
+        state = load_safetensors(data)  # the bytes that were hashed
+    except SafetensorError as exc:
+        raise InputError(f"--init-from {init_dir}: unreadable weights", [
+            Problem(str(weights_path), f"not a safetensors file ({exc})", fix=_INIT_FIX)]) from None
+    return {"path": str(init_dir), "weights_sha256": hashlib.sha256(data).hexdigest()}, state
 
 
 def param_groups(model, d) -> list[dict]:

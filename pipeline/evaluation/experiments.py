@@ -112,7 +112,8 @@ def query_runs(data: Path, names: list[str] | None) -> list:
 
 
 def check_same_map(bundle_map, data: Path) -> None:
-    """Refuse a site whose map is not the bundle's: its runs' poses would be measured in another frame."""
+    """Refuse a site whose map frame is not the bundle's: its runs' poses would be measured in another frame.
+    The cells may differ: the building may have changed since the bundle was exported (`siteloc check`)."""
     from pipeline.io.map_yaml import read_map
 
     path = Path(data) / "map.yaml"
@@ -120,7 +121,7 @@ def check_same_map(bundle_map, data: Path) -> None:
         raise InputError(f"{data}: no map.yaml", [Problem(str(path), "missing",
                                                           fix="point DATA at the output of `siteloc ingest`")])
     occ = read_map(path)
-    same = (occ.grid.shape == bundle_map.grid.shape and np.array_equal(occ.grid, bundle_map.grid)
+    same = (occ.grid.shape == bundle_map.grid.shape
             and np.allclose([occ.resolution, occ.origin_x, occ.origin_y, occ.origin_yaw],
                             [bundle_map.resolution, bundle_map.origin_x, bundle_map.origin_y, bundle_map.origin_yaw]))
     if not same:

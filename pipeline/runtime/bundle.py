@@ -6,7 +6,10 @@ A bundle is a directory `<site>-<version>/` written by `siteloc export`, or its 
                        dvc.lock hash, and every other file with its sha256 and size (written last)
     filter.yaml        filter settings, retrieval settings, laser geometry and mount, camera size
     map/               map.yaml + map.pgm (ROS map_server)
-    db/                whitened database descriptors and poses (Parquet), whitening arrays (npz)
+    db/                whitened database descriptors and poses (Parquet), whitening arrays (npz), the
+                       database images' stops and labels (images.parquet)
+    evaluation/        baseline.json: the bundle's own figures per area (`siteloc check` compares with them)
+    changelog.*        with a parent bundle: what changed against it (`pipeline.bundle.diff`)
     models/            describer.onnx (image -> map, proposals, detections) and describer.json
 
 `verify_bundle` refuses, naming the file and the fix: a missing manifest, an unknown major schema, a

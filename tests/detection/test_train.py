@@ -190,3 +190,136 @@ def test_paper_recipe_gives_biases_twice_the_lr_and_no_decay():
     grouped = [id(p) for p in weights["params"] + biases["params"]]
     assert len(grouped) == len(set(grouped)) and set(grouped) == trainable
     assert all(p.ndim == 1 for p in biases["params"])
+
+
+# --init-from: fine-tuning an earlier train-detector output (issue 26, after `siteloc update`).
+# The earlier model is trained from the ImageNet weights, so its batch norms are frozen (as the configured weights
+# decide) and every tensor of the state dict, statistics included, can only change through the optimizer.
+INIT = [*SMALL, "detector.weights=imagenet", "detector.iterations=2"]
+
+
+@pytest.fixture(scope="module")
+def old_model(site, tmp_path_factory):
+    out = tmp_path_factory.mktemp("init") / "old"
+    return run_train_detector(load_config("ci", INIT), inputs={"data": site}, outputs={"out": out}, progress=False)
+
+
+@pytest.fixture(scope="module")
+def fine_tuned(site, old_model, tmp_path_factory):
+    """Two iterations from `old_model` with the schedule's learning rate forced to 0 (the config insists on
+    lr > 0 and iterations >= 1): forward, backward and optimizer steps all run, and nothing may move."""
+    import pipeline.detection.train as T
+
+    out = tmp_path_factory.mktemp("init") / "new"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(T, "learning_rate", lambda it, d: 0.0)
+        run_train_detector(load_config("ci", INIT), inputs={"data": site, "init_from": old_model},
+                           outputs={"out": out}, progress=False)
+    return out
+
+
+def test_init_from_starts_from_the_old_models_weights(old_model, fine_tuned):
+    from safetensors.torch import load_file
+
+    from pipeline.detection.builders import build_detector
+
+    old, new = load_file(str(old_model / "weights.safetensors")), load_file(str(fine_tuned / "weights.safetensors"))
+    assert old.keys() == new.keys()
+    assert all(torch.equal(old[k], new[k]) for k in old)  # bit for bit: the old weights, not ImageNet's
+    assert len(json.loads((fine_tuned / "metrics.json").read_text())["loss_history"]) == 2  # it did train
+    # ... and the check is not vacuous: the configured (ImageNet) start is not the old model.
+    c = json.loads((old_model / "config.json").read_text())
+    torch.manual_seed(0)
+    fresh = build_detector(weights="imagenet", **c["builder"]).model.state_dict()
+    assert not all(torch.equal(fresh[k], old[k]) for k in old)
+
+
+def test_init_from_is_recorded_and_separates_checkpoints(old_model, fine_tuned):
+    import hashlib
+    from types import SimpleNamespace
+
+    import yaml
+
+    from pipeline.detection.train import _fingerprint
+
+    c = json.loads((fine_tuned / "config.json").read_text())
+    sha = hashlib.sha256((old_model / "weights.safetensors").read_bytes()).hexdigest()
+    assert c["init_from"] == {"path": str(old_model), "weights_sha256": sha}
+    assert c["weights_source"].startswith(f"init-from: {old_model}") and sha[:12] in c["weights_source"]
+    assert c["builder"] == json.loads((old_model / "config.json").read_text())["builder"]
+    assert c["frozen"] == json.loads((old_model / "config.json").read_text())["frozen"]
+    assert "init_from" not in json.loads((old_model / "config.json").read_text())
+    eff = yaml.safe_load((fine_tuned / "config.yaml").read_text())
+    assert eff["inputs"]["init_from"] == str(old_model) and eff["config"]["detector"]["iterations"] == 2
+    # A checkpoint of a training from other weights (or from detector.weights) is never resumed.
+    d, train = load_config("ci", INIT).detector, [SimpleNamespace(image_id="a")]
+    prints = {_fingerprint(d, train), _fingerprint(d, train, c["init_from"]),
+              _fingerprint(d, train, {**c["init_from"], "weights_sha256": "0" * 64})}
+    assert len(prints) == 3
+
+
+def _copy_model(src, dst, **changes):
+    import shutil
+
+    shutil.copytree(src, dst)
+    c = json.loads((dst / "config.json").read_text())
+    for key, value in changes.items():
+        if key == "classes":
+            c["classes"] = value
+        else:
+            c["builder"][key] = value
+    (dst / "config.json").write_text(json.dumps(c))
+    return dst
+
+
+def test_init_from_refuses_another_network_and_writes_nothing(site, old_model, tmp_path):
+    from pipeline.errors import InputError
+
+    cfg = load_config("ci", INIT)
+
+    def refused(init, match):
+        with pytest.raises(InputError, match=match) as exc:
+            run_train_detector(cfg, inputs={"data": site, "init_from": init}, outputs={"out": tmp_path / "det"},
+                               progress=False)
+        assert not (tmp_path / "det").exists() and not (tmp_path / "det.partial").exists()
+        return str(exc.value)
+
+    # other classes
+    classes = json.loads((old_model / "config.json").read_text())["classes"]
+    msg = refused(_copy_model(old_model, tmp_path / "cls", classes=classes[::-1]), "config.json")
+    assert "key 'classes'" in msg and str(classes[::-1]) in msg and str(classes) in msg and "fix:" in msg
+    # other builder arguments: both values and the --set that would match the model
+    msg = refused(_copy_model(old_model, tmp_path / "arg", anchor_sizes=[8, 16], max_size=128), "config.json")
+    assert "key 'builder.anchor_sizes'" in msg and "[8, 16]" in msg and "[16, 32, 64]" in msg
+    assert "--set detector.anchor_sizes=[8,16]" in msg and "--set detector.max_size=128" in msg
+    # batch norms frozen or not follow detector.weights: a model trained from random weights does not fit
+    msg = refused(_copy_model(old_model, tmp_path / "bn", frozen_batch_norm=False), "frozen_batch_norm")
+    assert "False" in msg and "True" in msg and "detector.weights" in msg
+    # a directory that is not a train-detector output, or none at all
+    msg = refused(tmp_path / "nowhere", "not a trained detector")
+    assert f"{tmp_path / 'nowhere'}: no such directory" in msg and "point --init-from at" in msg
+    (tmp_path / "half").mkdir()
+    (tmp_path / "half" / "config.json").write_text((old_model / "config.json").read_text())
+    assert "weights.safetensors: missing" in refused(tmp_path / "half", "not a trained detector")
+    bad = _copy_model(old_model, tmp_path / "bytes")
+    (bad / "weights.safetensors").write_bytes(b"\x80\x02not safetensors")  # never unpickled
+    assert "weights.safetensors: not a safetensors file" in refused(bad, "unreadable weights")
+
+
+def test_cli_refuses_a_bad_init_from_without_a_traceback(site, old_model, tmp_path):
+    from typer.testing import CliRunner
+
+    from stages.app import app
+
+    runner = CliRunner()
+    sets = [a for item in INIT for a in ("--set", item)]
+    res = runner.invoke(app, ["train-detector", str(site), "--out", str(tmp_path / "m"), "-c", "ci", *sets,
+                              "--init-from", str(tmp_path / "missing")])
+    assert res.exit_code == 1 and "Traceback" not in res.output, res.output
+    assert "--init-from" in res.output and "missing: no such directory" in res.output
+    other = _copy_model(old_model, tmp_path / "other", backbone="vgg16")
+    res = runner.invoke(app, ["train-detector", str(site), "--out", str(tmp_path / "m"), "-c", "ci", *sets,
+                              "--init-from", str(other)])
+    assert res.exit_code == 1 and "Traceback" not in res.output, res.output
+    assert "builder.backbone" in res.output and "'vgg16'" in res.output and "'efficientnet_lite0'" in res.output
+    assert not (tmp_path / "m").exists()
