@@ -463,6 +463,9 @@ class UpdateConfig(Strict):
                                "no labels either)")
     mapping: MappingConfig = Field(MappingConfig(), description="how the new runs' scans are mapped to patch the "
                                    "changed areas (the resolution is always the site map's)")
+    map_tolerance_m: float = Field(0.1, ge=0, description="a wall the new scans see within this of a wall the map "
+                                   "has is the same wall: only obstacles and free space farther than this from what "
+                                   "the map says change it (and cells the map did not know)")
 
 
 class CheckConfig(Strict):

@@ -31,7 +31,12 @@ synth_report.json, synth_timing.json, config.yaml and ATTRIBUTION.md. `siteloc i
 
 --change writes the same building after a change (moved furniture, new posters, new notes on the
 boards, other lighting; plates and signs stay). --change-area ROOM or ROOM/AREA changes only there (the
-lighting stays). --area ROOM or ROOM/AREA captures only the stops there, with the full site's stop ids and all
+lighting stays). --move-wall (implies --change) also moves one interior wall, seeded, by --move-wall-m metres
+(0.5): a partition between two rooms, or between a room and the corridor it runs along, never an outer wall
+(with --change-area, a wall of those rooms); its doors move with it, furniture in its way is pushed aside or
+removed, and map.yaml, the runs' laser scans and the images all show it; synth_report.json's wall_moved names
+its rooms and its ends before and after.
+--area ROOM or ROOM/AREA captures only the stops there, with the full site's stop ids and all
 the runs: the re-capture of changed areas that `siteloc update` merges into a site database.
 --config picks the synth section of a preset in configs/ (demo: office; ci: a micro tiny site; paper:
 paper) and --preset / --seed / --set override it. --set overrides any site preset key, e.g.
@@ -63,6 +68,14 @@ def synth(
         list[str] | None,
         typer.Option("--change-area", show_default=False,
                      help="Change only this room or room/area (repeatable; implies --change, lighting unchanged)."),
+    ] = None,
+    move_wall: Annotated[
+        bool, typer.Option("--move-wall", help="With the change, also move one interior wall (implies --change).")
+    ] = False,
+    move_wall_m: Annotated[
+        float | None,
+        typer.Option("--move-wall-m", min=0.01, show_default=False,
+                     help="How far the wall moves, in metres (implies --move-wall) \\[default: 0.5]."),
     ] = None,
     area: Annotated[
         list[str] | None,
@@ -97,7 +110,8 @@ def synth(
         site = load_site_preset(preset or cfg.site, {**cfg.preset_overrides, **parse_overrides(overrides)})
         path = run_synth(site, outputs={"out": out}, seed=cfg.seed if seed is None else seed, change=change,
                          force=force, allow_fallback=not strict_assets, workers=workers, areas=tuple(area or ()),
-                         change_areas=tuple(change_area or ()))
+                         change_areas=tuple(change_area or ()),
+                         move_wall_m=move_wall_m if move_wall_m is not None else 0.5 if move_wall else 0.0)
         rep = json.loads((path / "synth_report.json").read_text())
         timing = json.loads((path / "synth_timing.json").read_text())
         typer.echo(
@@ -105,6 +119,10 @@ def synth(
             f"{len(rep['runs'])} runs, {rep['images_rendered']} images at {timing['images_per_s']} images/s "
             f"({timing['render_workers']} rendering processes), {timing['wall_time_s']} s wall -> {path}"
         )
+        if "wall_moved" in rep:
+            moved = rep["wall_moved"]
+            typer.echo(f"moved the wall of {', '.join(moved['rooms'])} by {moved['distance_m']} m into "
+                       f"{', '.join(moved['into'])}: {moved['from']} -> {moved['to']}")
         typer.echo("boxes per class: " + ", ".join(f"{c} {n}" for c, n in rep["boxes_per_class"].items()))
         if rep["assets_procedural"]:
             typer.secho(f"warning: procedural shapes for {', '.join(rep['assets_missing'])}", fg="yellow", err=True)

@@ -27,7 +27,7 @@ def map_drift(occ_map: OccupancyMap, owner: np.ndarray, names: list[str], runs: 
     plus the two (H, W) masks for the figure."""
     from scipy.ndimage import distance_transform_edt
 
-    from pipeline.update.map_patch import patch_map, scans_with_poses
+    from pipeline.update.map_patch import disagreement, fresh_map, scans_with_poses
 
     c = cfg.check
     found = scans_with_poses(runs, base_from_laser)
@@ -49,13 +49,9 @@ def map_drift(occ_map: OccupancyMap, owner: np.ndarray, names: list[str], runs: 
     ep_owner = np.full(len(row), -1, dtype=np.int64)
     ep_owner[inside] = owner[row[inside], col[inside]]
 
-    everywhere = np.ones(occ_map.grid.shape, dtype=bool)
-    fresh = patch_map(occ_map, runs, base_from_laser, everywhere, cfg.update.mapping, progress=progress)
-    seen_wall = fresh.observed & (fresh.occ_map.grid == OCCUPIED)
-    seen_free = fresh.observed & (fresh.occ_map.grid == FREE)
-    to_seen_wall = distance_transform_edt(~seen_wall) * res
-    new_obstacles = seen_wall & (occ_map.grid == FREE) & (to_wall > c.endpoint_tolerance_m + 1e-9)
-    walls_gone = seen_free & (occ_map.grid == OCCUPIED) & (to_seen_wall > c.endpoint_tolerance_m + 1e-9)
+    fresh, _ = fresh_map(occ_map, runs, base_from_laser, cfg.update.mapping, progress=progress)
+    observed = (fresh == FREE) | (fresh == OCCUPIED)
+    new_obstacles, walls_gone = disagreement(occ_map, fresh, observed, c.endpoint_tolerance_m)
     cell_m2 = res * res
     areas = {}
     for i, key in enumerate(names):

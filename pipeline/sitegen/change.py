@@ -4,7 +4,9 @@ Walls, doors and windows stay, and so do room plates, escape plans and signs; fu
 bins shift), posters are replaced or taken down and new ones hung, notice boards get new notes, some
 plants go, and the lighting differs (a global
 exposure and tint shift applied by the renderer). Everything is seeded, so the changed site is
-reproducible too.
+reproducible too. With `ChangeSpec.move_wall_m`, one interior wall moves as well (`choose_wall_move`): the
+occupancy map, the laser's world and the meshes, all drawn from the scene's walls, then differ around it
+(pipeline.sitegen.wall_move).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ class ChangeSpec:
     board_update_share: float = 0.7  # notice boards whose notes are replaced
     exposure_gain: float = 0.85  # the changed site's lighting is dimmer and warmer
     tint: tuple[float, float, float] = (1.05, 1.0, 0.9)
+    move_wall_m: float = 0.0  # > 0: one interior wall moves this far (`choose_wall_move`); 0: the walls stay
 
 
 def area_keys(scene: Scene) -> set[str]:
@@ -50,7 +53,9 @@ def change_scene(scene: Scene, seed: int, spec: ChangeSpec = ChangeSpec(), poste
     """A changed copy of `scene`: moved furniture, new and removed posters, fewer plants, notice boards
     with new notes. Room plates, escape plans and signs stay, as they do in buildings. With
     `unique_pictures`, a replaced or new poster shows a picture the site never showed (the pool's next).
-    With `areas` (room names or room/area labels), only objects standing in them change.
+    With `areas` (room names or room/area labels), only objects standing in them change. With
+    `spec.move_wall_m`, an interior wall moves too (with `areas`, one beside their rooms; see `choose_wall_move`);
+    ValueError when none can.
 
     Instance ids are renumbered densely; the returned scene's `name` gains a `-changed` suffix.
     """
@@ -103,8 +108,13 @@ def change_scene(scene: Scene, seed: int, spec: ChangeSpec = ChangeSpec(), poste
                                                                       "fire_extinguisher") or o.kind in SIGNAGE_KINDS):
                 kept.append(new)
                 break
+    moved = {}
+    if spec.move_wall_m > 0:  # its own random stream: the draws above are the same with or without it
+        from pipeline.sitegen.wall_move import move_wall
+
+        kept, moved = move_wall(scene, seed, spec.move_wall_m, areas, kept)
     objects = [replace(o, instance_id=i + 1) for i, o in enumerate(kept)]
-    return replace(scene, name=f"{scene.name}-changed", objects=objects)
+    return replace(scene, name=f"{scene.name}-changed", objects=objects, **moved)
 
 
 def _overlaps(a: SceneObject, b: SceneObject, gap: float = 0.1) -> bool:

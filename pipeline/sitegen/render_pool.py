@@ -24,9 +24,12 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 from pipeline.sitegen.camera_effects import Blur
+
+if TYPE_CHECKING:
+    from pipeline.sitegen.change import ChangeSpec  # a change with a wall move travels to the workers as it is
 
 MAX_WORKERS = 4  # each worker holds the scene's textures and buffers (a few hundred MB for the office floor)
 STASH = ".develop"  # distorted frames waiting for their lagged exposure gain, under the site's temporary directory
@@ -158,7 +161,7 @@ def default_workers() -> int:
 _WORKER: dict = {}
 
 
-def _start_worker(preset_json: dict, seed: int, change: bool, allow_fallback: bool, root: str,
+def _start_worker(preset_json: dict, seed: int, change: bool | ChangeSpec, allow_fallback: bool, root: str,
                   change_areas: tuple[str, ...] = ()) -> None:
     import os
 
@@ -180,8 +183,8 @@ def _develop(batch):
     return develop_frames(_WORKER["ctx"], views, gains)
 
 
-def open_render_context(preset, seed: int, change: bool, allow_fallback: bool, root: Path, scene=None, library=None,
-                        change_areas: tuple[str, ...] = ()):
+def open_render_context(preset, seed: int, change: bool | ChangeSpec, allow_fallback: bool, root: Path, scene=None,
+                        library=None, change_areas: tuple[str, ...] = ()):
     """A renderer with the site's scene uploaded, and the context `render_views` needs; returns (ctx, renderer)
     (close the renderer when done)."""
     from pipeline.sitegen.assets import load_assets
@@ -223,7 +226,7 @@ class RenderPool:
     with the caller's `scene` and `library` when given (built from the preset and seed when not).
     """
 
-    def __init__(self, preset, seed: int, change: bool, allow_fallback: bool, root: Path, *, workers: int,
+    def __init__(self, preset, seed: int, change: bool | ChangeSpec, allow_fallback: bool, root: Path, *, workers: int,
                  scene=None, library=None, change_areas: tuple[str, ...] = ()):
         self.workers, self.ctx, self._renderer, self._pool = int(workers), None, None, None
         if self.workers > 1:

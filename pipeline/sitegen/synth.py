@@ -95,15 +95,18 @@ def preset_record(preset: SitePreset) -> dict:
     return dump
 
 
-def build_scene(preset: SitePreset, seed: int, change: bool, change_areas: tuple[str, ...] = ()):
-    """The site's scene; with `change`, after the environment change (only in `change_areas` when given)."""
-    from pipeline.sitegen.change import change_scene
+def build_scene(preset: SitePreset, seed: int, change, change_areas: tuple[str, ...] = ()):
+    """The site's scene; with `change`, after the environment change (only in `change_areas` when given).
+    `change` is a bool (True: the change of the default `ChangeSpec`) or a `ChangeSpec` (e.g. one that moves a
+    wall too): the render workers rebuild the scene from what `RenderPool` hands them, so it says everything."""
+    from pipeline.sitegen.change import ChangeSpec, change_scene
     from pipeline.sitegen.furnish import furnish_scene
     from pipeline.sitegen.layout import generate_plan
 
     scene = furnish_scene(generate_plan(preset, seed), preset, seed)
     if change:
-        scene = change_scene(scene, seed, poster_pictures=preset.furnishing.poster_pictures,
+        spec = change if isinstance(change, ChangeSpec) else ChangeSpec()
+        scene = change_scene(scene, seed, spec, poster_pictures=preset.furnishing.poster_pictures,
                              unique_pictures=preset.identity.unique_pictures, areas=tuple(change_areas))
     return scene
 
@@ -124,12 +127,17 @@ def check_areas(scene, areas: tuple[str, ...], option: str) -> None:
 
 def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, change: bool = False,
               force: bool = False, progress: bool = True, allow_fallback: bool = True,
-              workers: int | None = None, areas: tuple[str, ...] = (), change_areas: tuple[str, ...] = ()) -> Path:
+              workers: int | None = None, areas: tuple[str, ...] = (), change_areas: tuple[str, ...] = (),
+              move_wall_m: float = 0.0) -> Path:
     """Write the reference site of `preset` to `outputs['out']`; returns that directory. `workers`: rendering
     processes (`pipeline.sitegen.render_pool`; None: the usable cores, at most 4; 1: this process). The
     site written does not depend on it. `areas`: capture only the stops in these rooms or room/areas (a
     re-capture; stop ids and views stay the full site's). `change_areas`: the change happens only there (it
-    implies `change`; the lighting stays the same, as it is the building's)."""
+    implies `change`; the lighting stays the same, as it is the building's). `move_wall_m` > 0: the change also
+    moves an interior wall that far (`change.choose_wall_move`; beside a room of `change_areas` when given; implies
+    `change`); the map, the runs' laser world and the meshes show it, and the report says which wall moved. With
+    `change_areas`, a stop of the building's plan that the moved wall now covers or crowds moves to the nearest
+    place of its room with the stops' clearance, keeping its id (`_restop`; the report lists them)."""
     from pipeline.progress import progress_bar
     from pipeline.sitegen.assets import load_assets
     from pipeline.sitegen.laser import rasterise_map
@@ -138,12 +146,18 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
 
     t_start = time.perf_counter()
     areas, change_areas = tuple(areas), tuple(change_areas)
-    change = change or bool(change_areas)
+    change = change or bool(change_areas) or move_wall_m > 0
     relit = change and not change_areas
     base = build_scene(preset, seed, False)
     check_areas(base, areas, "--area")
     check_areas(base, change_areas, "--change-area")
-    scene = build_scene(preset, seed, change, change_areas) if change else base
+    scene_change, wall_move = change, None  # what the scene is built with: the workers rebuild it from that
+    if move_wall_m > 0:
+        from pipeline.sitegen.change import ChangeSpec
+
+        wall_move = _wall_move(base, seed, float(move_wall_m), change_areas)
+        scene_change = ChangeSpec(move_wall_m=float(move_wall_m))
+    scene = build_scene(preset, seed, scene_change, change_areas) if change else base
     library = load_assets(tuple(preset.furnishing.classes), allow_fallback=allow_fallback)
     occ_map = rasterise_map(scene, preset.map_resolution)
     # The capture plan: a change of some areas keeps the building's stops (the team re-captures them), so
@@ -151,6 +165,9 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
     plan_scene, plan_map = (base, rasterise_map(base, preset.map_resolution)) if change_areas else (scene, occ_map)
     stops = sample_stops(plan_scene, plan_map, spacing=preset.stops.spacing, clearance=preset.stops.clearance,
                          jitter=preset.stops.jitter, seed=seed)
+    moved_stops, walled = {}, set()
+    if change_areas and wall_move is not None:  # the building's plan, with the stops the wall now crowds moved
+        stops, moved_stops, walled = _restop(stops, occ_map, scene, base, wall_move.rooms, preset.stops.clearance)
     k = intrinsics_of(preset)
     rng = np.random.default_rng(seed + 31)
     out = Path(outputs["out"])
@@ -158,14 +175,14 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
     suffix = image_suffix(preset)
     stats = {"images": 0, "render_s": 0.0, "effects_s": 0.0, "workers": workers}
     with atomic_dir(out, force=force) as tmp:
-        with RenderPool(preset, seed, change, allow_fallback, tmp, workers=workers, scene=scene,
+        with RenderPool(preset, seed, scene_change, allow_fallback, tmp, workers=workers, scene=scene,
                         library=library, change_areas=change_areas) as pool:
             offsets = [2 * math.pi * v / preset.camera.views for v in range(preset.camera.views)]
             rows, coco_images, coco_anns, batches = [], [], [], []
             for s, (x, y, heading) in enumerate(stops):
                 lighting = _lighting(preset, scene, rng, relit)  # drawn in stop order, whoever renders
                 room, area = scene.room_at(x, y)
-                if areas and room not in areas and f"{room}/{area}" not in areas:
+                if areas and room not in areas and f"{room}/{area}" not in areas or s in walled:
                     continue  # not re-captured: its lighting was drawn all the same, so the others keep theirs
                 views = []
                 for v, off in enumerate(offsets):
@@ -196,7 +213,8 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
                                       "bbox": [b.x1, b.y1, b.x2 - b.x1, b.y2 - b.y1],
                                       "area": (b.x2 - b.x1) * (b.y2 - b.y1), "iscrowd": 0,
                                       "instance_id": b.instance_id, "visible_share": round(b.visible_share, 3)})
-            run_report = _write_runs(tmp, preset, scene, occ_map, stops, pool, rng, seed, change, stats,
+            run_stops = [st for s, st in enumerate(stops) if s not in walled]
+            run_report = _write_runs(tmp, preset, scene, occ_map, run_stops, pool, rng, seed, change, stats,
                                      progress, relit)
         shutil.rmtree(tmp / STASH, ignore_errors=True)  # empty by now: every stashed frame was developed
         with (tmp / "captures.csv").open("w", newline="") as fh:
@@ -220,6 +238,12 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
             "runs": run_report, "assets_procedural": bool(library.procedural), "assets_missing": list(library.missing),
             "images_rendered": stats["images"],
         }
+        if wall_move is not None:
+            report["wall_moved"] = {
+                **wall_move.record(),
+                "stops_moved": {f"stop{s:04d}": [[round(v, 4) for v in p] for p in ends]
+                                for s, ends in sorted(moved_stops.items())},
+                "stops_not_captured": [f"stop{s:04d}" for s in sorted(walled)]}
         if effects_record(preset) is not None:
             report["camera_effects"] = effects_record(preset)
         write_text_atomic(tmp / "synth_report.json", json.dumps(report, indent=2) + "\n")
@@ -232,11 +256,56 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
                   "images_per_s": round(stats["images"] / max(time.perf_counter() - t_start, 1e-9), 2),
                   "machine": machine_summary()}
         write_text_atomic(tmp / "synth_timing.json", json.dumps(timing, indent=2) + "\n")
-        write_text_atomic(tmp / "config.yaml", yaml.safe_dump(
-            {"stage": "synth", "siteloc_version": __version__, "seed": seed, "change": change,
-             "change_areas": list(change_areas), "areas": list(areas),
-             "preset": preset_record(preset)}, sort_keys=False))
+        config = {"stage": "synth", "siteloc_version": __version__, "seed": seed, "change": change,
+                  "change_areas": list(change_areas), "areas": list(areas)}
+        if wall_move is not None:
+            config["move_wall_m"] = float(move_wall_m)
+        write_text_atomic(tmp / "config.yaml", yaml.safe_dump({**config, "preset": preset_record(preset)},
+                                                              sort_keys=False))
     return out
+
+
+def _wall_move(base, seed: int, distance: float, change_areas: tuple[str, ...]):
+    """The wall the change moves (what `change_scene` picks on the same scene), or a clear error if none may."""
+    from pipeline.errors import InputError, Problem
+    from pipeline.sitegen.wall_move import MIN_ROOM_M, choose_wall_move
+
+    where = f" beside {', '.join(change_areas)}" if change_areas else ""
+    move = choose_wall_move(base, seed, distance, change_areas)
+    if move is None:
+        raise InputError(f"--move-wall: no interior wall{where} can move by {distance} m", [Problem(
+            "--move-wall-m", f"no partition{where} can move {distance} m and leave the room it moves into "
+            f"{MIN_ROOM_M} m deep, without closing a door or meeting another wall at a door or window",
+            fix="a smaller --move-wall-m, another seed, or other --change-area rooms (rooms along a "
+                "partition; corridors only where a wall runs their whole length)")])
+    return move
+
+
+def _restop(stops, occ_map, scene, base, rooms: tuple[str, ...], clearance: float):
+    """The building's capture plan (sampled on the unchanged map) after a wall moved: a stop in one of the wall's
+    `rooms` with less than `clearance` in the changed map (the wall or what it pushed now stands there) moves to
+    the nearest place inside its room that has it, keeping its id and heading. Returns (stops, {stop: (from, to)},
+    stops that found no place: not captured)."""
+    from pipeline.sitegen.routes import clearance_field
+
+    clear = clearance_field(occ_map)
+    rows, cols = np.nonzero(clear >= clearance)
+    cx, cy = occ_map.cell_to_world(rows, cols)
+    rects = {r.name: r.rect for r in scene.rooms}
+    out, moved, lost = list(stops), {}, set()
+    for s, (x, y, heading) in enumerate(stops):
+        room = base.room_at(x, y)[0]
+        r, c = (int(v) for v in occ_map.world_to_cell(x, y))
+        if room not in rooms or clear[r, c] >= clearance:
+            continue
+        inside = rects[room].contains(cx, cy, margin=clearance)  # inside it, not in a doorway
+        if not inside.any():
+            lost.add(s)
+            continue
+        k = int(np.argmin(np.hypot(cx[inside] - x, cy[inside] - y)))
+        out[s] = (float(cx[inside][k]), float(cy[inside][k]), heading)
+        moved[s] = ((x, y), out[s][:2])
+    return out, moved, lost
 
 
 def _count_boxes(anns: list[dict], preset: SitePreset) -> dict[str, int]:

@@ -1,9 +1,11 @@
 """Patch a site's occupancy map from new scans with known poses, inside the changed areas only.
 
 The new scans are mapped on the old map's own grid (pipeline.mapping.occupancy, same cells, same
-resolution); a cell of a changed area that the new scans observed takes its new value, every other cell
-keeps the old one. So a moved wall or a new cabinet enters the map, and nothing outside the areas that
-were re-captured can change.
+resolution). Where they disagree with the old map beyond a tolerance (`disagreement`: an obstacle seen
+where the map has no wall within it, free space seen through a wall the scans do not see within it), or
+observe a cell the map did not know, a cell of a changed area takes its new value; every other cell keeps
+the old one. So a moved wall or a new cabinet enters the map, a wall's edge drawn a cell thicker or thinner
+by another mapping does not, and nothing outside the areas that were re-captured can change.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import numpy as np
 import pyarrow as pa
 
 from pipeline.config import MappingConfig
-from pipeline.io.map_yaml import FREE, OCCUPIED, OccupancyMap
+from pipeline.io.map_yaml import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
 
 @dataclass(frozen=True)
@@ -47,15 +49,29 @@ def scans_with_poses(runs: list[pa.Table], base_from_laser: tuple[float, float, 
     return laser_poses(np.concatenate(poses), base_from_laser), np.concatenate(ranges), *laser
 
 
-def patch_map(old: OccupancyMap, runs: list[pa.Table], base_from_laser: tuple[float, float, float],
-              region: np.ndarray, cfg: MappingConfig, *, progress: bool = True) -> MapPatch:
-    """`old` with the cells of `region` (H, W bool) that the runs' scans observe replaced by their new value."""
+def disagreement(old: OccupancyMap, fresh: np.ndarray, observed: np.ndarray,
+                 tolerance_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(new obstacles, walls gone), (H, W) bool: observed cells `fresh` calls occupied with no wall of `old`
+    within `tolerance_m`, and walls of `old` that `fresh` observed free with no wall of its own within it."""
+    from scipy.ndimage import distance_transform_edt
+
+    seen_wall = observed & (fresh == OCCUPIED)
+    seen_free = observed & (fresh == FREE)
+    to_wall = distance_transform_edt(old.grid != OCCUPIED) * old.resolution
+    to_seen_wall = distance_transform_edt(~seen_wall) * old.resolution
+    new_obstacles = seen_wall & (old.grid != OCCUPIED) & (to_wall > tolerance_m + 1e-9)
+    walls_gone = seen_free & (old.grid == OCCUPIED) & (to_seen_wall > tolerance_m + 1e-9)
+    return new_obstacles, walls_gone
+
+
+def fresh_map(old: OccupancyMap, runs: list[pa.Table], base_from_laser: tuple[float, float, float],
+              cfg: MappingConfig, *, progress: bool = True) -> tuple[np.ndarray | None, int]:
+    """(the runs' scans mapped on `old`'s grid (H, W), or None without scans with ground truth; scans used)."""
     from pipeline.mapping.occupancy import build_occupancy_map
 
-    nothing = np.zeros(old.grid.shape, dtype=bool)
     found = scans_with_poses(runs, base_from_laser)
-    if found is None or not region.any():
-        return MapPatch(old, 0 if found is None else len(found[0]), nothing, nothing)
+    if found is None:
+        return None, 0
     poses, ranges, angle_min, angle_increment, range_max = found
     # Scans in the grid's own frame (origin at 0, axes along the grid), so a rotated map origin works too.
     c, s = np.cos(-old.origin_yaw), np.sin(-old.origin_yaw)
@@ -64,12 +80,28 @@ def patch_map(old: OccupancyMap, runs: list[pa.Table], base_from_laser: tuple[fl
     fresh = build_occupancy_map(local, ranges, angle_min, angle_increment, range_max,
                                 cfg.model_copy(update={"resolution": old.resolution}),
                                 frame=(0.0, 0.0, old.width, old.height), progress=progress)
-    observed = region & ((fresh.grid == FREE) | (fresh.grid == OCCUPIED))
+    return fresh.grid, len(poses)
+
+
+def patch_map(old: OccupancyMap, runs: list[pa.Table], base_from_laser: tuple[float, float, float],
+              region: np.ndarray, cfg: MappingConfig, *, tolerance_m: float = 0.0,
+              progress: bool = True) -> MapPatch:
+    """`old` with the cells of `region` (H, W bool) where the runs' scans disagree with it (`disagreement`
+    at `tolerance_m`; 0: every observed cell) or that it did not know replaced by their new value."""
+    nothing = np.zeros(old.grid.shape, dtype=bool)
+    if not region.any():
+        return MapPatch(old, 0, nothing, nothing)
+    fresh, scans = fresh_map(old, runs, base_from_laser, cfg, progress=progress)
+    if fresh is None:
+        return MapPatch(old, 0, nothing, nothing)
+    observed = region & ((fresh == FREE) | (fresh == OCCUPIED))
+    new_obstacles, walls_gone = disagreement(old, fresh, observed, tolerance_m)
+    take = new_obstacles | walls_gone | (observed & (old.grid == UNKNOWN))
     grid = old.grid.copy()
-    grid[observed] = fresh.grid[observed]
+    grid[take] = fresh[take]
     return MapPatch(OccupancyMap(grid=grid, resolution=old.resolution, origin_x=old.origin_x,
                                  origin_y=old.origin_y, origin_yaw=old.origin_yaw),
-                    len(poses), grid != old.grid, observed)
+                    scans, grid != old.grid, observed)
 
 
 def patch_figure(path, old: OccupancyMap, patch: MapPatch, region: np.ndarray) -> None:

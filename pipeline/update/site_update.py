@@ -9,7 +9,6 @@ Every problem is found before anything is written, and the output appears only w
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +23,7 @@ from pipeline.io import tables
 from pipeline.io.atomic import atomic_dir, write_text_atomic
 from pipeline.io.map_yaml import OccupancyMap, read_map, write_map
 from pipeline.io.site import Site, read_site, write_site
+from pipeline.runtime.bundle import sha256_of
 from pipeline.update.areas import Stops, assign_areas, cell_owners, stops_of
 
 CHANGELOG_VERSION = 1
@@ -79,14 +79,6 @@ def check_compatible(old: SiteDb, new: SiteDb, problems: Problems) -> None:
 def _short(value) -> str:
     text = value.model_dump_json() if hasattr(value, "model_dump_json") else repr(value)
     return text if len(text) <= 120 else text[:117] + "..."
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _relabel(images: pa.Table, labels: dict[str, tuple[str, str | None, str | None]]) -> pa.Table:
@@ -202,7 +194,7 @@ def run_update(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
     region = np.isin(owner, [names.index(k) for k in changed if k in names])
     mount = old.site.laser.mount
     patch = patch_map(old.occ_map, list(new.runs.values()), (mount.x, mount.y, np.radians(mount.yaw_deg)), region,
-                      cfg.update.mapping, progress=progress)
+                      cfg.update.mapping, tolerance_m=cfg.update.map_tolerance_m, progress=progress)
     changed_cells = np.bincount(owner[patch.changed], minlength=len(names))
     observed_cells = np.bincount(owner[patch.observed], minlength=len(names))
 
@@ -226,9 +218,9 @@ def run_update(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
     changelog = {
         "changelog_version": CHANGELOG_VERSION,
         "parent": {"path": str(old.root), "site": old.site.name,
-                   "images_sha256": _sha256(old.root / "images.parquet"), "map_sha256": _sha256(map_image)},
+                   "images_sha256": sha256_of(old.root / "images.parquet"), "map_sha256": sha256_of(map_image)},
         "new_data": {"path": str(new.root), "site": new.site.name,
-                     "images_sha256": _sha256(new.root / "images.parquet")},
+                     "images_sha256": sha256_of(new.root / "images.parquet")},
         "changed_areas": changed,
         "areas": areas,
         "stops_removed_explicitly": plan["removed"],

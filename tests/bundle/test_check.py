@@ -8,7 +8,6 @@ import shutil
 import numpy as np
 import pyarrow.compute as pc
 import pytest
-from PIL import Image
 from typer.testing import CliRunner
 
 from pipeline.bundle.check import map_drift, place_likeness, run_check
@@ -16,34 +15,9 @@ from pipeline.errors import InputError
 from pipeline.io import tables
 from pipeline.io.map_yaml import FREE, OCCUPIED, OccupancyMap, read_map
 from pipeline.retrieval.metrics import positives
-from pipeline.sitegen.asset_cache import sha256_file
 from pipeline.update.areas import cell_owners, stops_of
 from stages.app import app
-
-
-def mirrored_stop(ing, out, stop: str):
-    """An ingested site holding only `stop` of `ing`, its views mirrored (new files, same poses), no runs."""
-    shutil.copytree(ing, out)
-    images = tables.read_table(out / "images.parquet", "images")
-    images = images.filter(pc.equal(images.column("stop_id"), stop))
-    for image_id in images.column("image_id").to_pylist():
-        (out / image_id).unlink()  # a hard link to the old site's file: write a new one
-        Image.open(ing / image_id).transpose(Image.FLIP_LEFT_RIGHT).save(out / image_id)
-    shas = [sha256_file(out / i) for i in images.column("image_id").to_pylist()]
-    images = images.set_column(images.schema.get_field_index("sha256"), "sha256", [shas])
-    tables.write_table(out / "images.parquet", images, "images")
-    boxes = tables.read_table(out / "boxes.parquet", "boxes")
-    tables.write_table(out / "boxes.parquet", boxes.slice(0, 0), "boxes")
-    shutil.rmtree(out / "runs")
-    return out
-
-
-def _database_stop(bundle):
-    """A labelled database stop of the bundle whose area holds no other stop (its drift is its own)."""
-    stops = stops_of(tables.read_table(bundle / "db" / "images.parquet", "images"))
-    keys = stops.keys()
-    alone = [s for s, k in zip(stops.stop_id, keys, strict=True) if keys.count(k) == 1 and "/" in k]
-    return alone[0], keys[stops.stop_id.index(alone[0])]
+from tests.fixtures.recapture import lone_database_stop, mirrored_stop
 
 
 def test_the_bundle_ships_its_stops_and_a_baseline_the_localizer_reproduces(micro_bundle):
@@ -83,7 +57,7 @@ def test_the_unchanged_site_shows_no_drift(micro_bundle, tmp_path):
 
 def test_a_changed_stop_is_flagged_and_nothing_else(micro_bundle, tmp_path):
     cfg, ing, _, _, bundle = micro_bundle
-    stop, key = _database_stop(bundle)
+    stop, key = lone_database_stop(bundle)
     new = mirrored_stop(ing, tmp_path / "new", stop)
     out = run_check(cfg, inputs={"bundle": bundle, "data": new}, outputs={"out": tmp_path / "c"}, localize=False,
                     progress=False)

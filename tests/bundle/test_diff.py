@@ -17,7 +17,7 @@ from pipeline.retrieval.extract import run_extract
 from pipeline.runtime.bundle import verify_bundle
 from pipeline.update.site_update import run_update
 from stages.app import app
-from tests.bundle.test_check import _database_stop, mirrored_stop
+from tests.fixtures.recapture import lone_database_stop, mirrored_stop
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +26,7 @@ def bundle_v2(micro_bundle, micro_extraction, tmp_path_factory):
     --reuse, indexed and exported with the micro bundle as its parent."""
     cfg, ing, model, _, v1 = micro_bundle
     root = tmp_path_factory.mktemp("v2")
-    stop, key = _database_stop(v1)
+    stop, key = lone_database_stop(v1)
     new = mirrored_stop(ing, root / "new", stop)
     site = run_update(cfg, inputs={"site_db": ing, "new_data": new}, outputs={"out": root / "site"}, progress=False)
     x = run_extract(cfg, inputs={"model": model, "data": site, "reuse": micro_extraction},

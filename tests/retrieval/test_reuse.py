@@ -5,36 +5,22 @@ from __future__ import annotations
 import json
 import shutil
 
-import numpy as np
 import pyarrow.parquet as pq
 import pytest
-from PIL import Image
 
 from pipeline.errors import InputError
 from pipeline.io import tables
 from pipeline.retrieval.extract import run_extract
 from pipeline.retrieval.reuse import HASHES_FILE, ReusedDescriptors
-from pipeline.sitegen.asset_cache import sha256_file
 from pipeline.update.site_update import run_update
+from tests.fixtures.recapture import mirrored_stop
 
 
 def recaptured_stop(ing, out):
-    """An ingested site holding one stop of `ing` with its views mirrored (new files, same poses), no runs."""
-    shutil.copytree(ing, out)
-    images = tables.read_table(out / "images.parquet", "images")
-    stop = images.column("stop_id")[0].as_py()
-    images = images.filter(np.array(images.column("stop_id").to_pylist()) == stop)
-    for image_id in images.column("image_id").to_pylist():
-        path = out / image_id
-        path.unlink()  # a hard link to the old site's file: write a new one
-        Image.open(ing / image_id).transpose(Image.FLIP_LEFT_RIGHT).save(path)
-    shas = [sha256_file(out / i) for i in images.column("image_id").to_pylist()]
-    images = images.set_column(images.schema.get_field_index("sha256"), "sha256", [shas])
-    tables.write_table(out / "images.parquet", images, "images")
-    boxes = tables.read_table(out / "boxes.parquet", "boxes")
-    tables.write_table(out / "boxes.parquet", boxes.slice(0, 0), "boxes")
-    shutil.rmtree(out / "runs")
-    return out, set(images.column("image_id").to_pylist())
+    """An ingested site holding the first stop of `ing` with its views mirrored (new files, same poses), no runs."""
+    stop = tables.read_table(ing / "images.parquet", "images").column("stop_id")[0].as_py()
+    out = mirrored_stop(ing, out, stop)
+    return out, set(tables.read_table(out / "images.parquet", "images").column("image_id").to_pylist())
 
 
 @pytest.fixture(scope="module")
