@@ -75,6 +75,9 @@ OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Output directory.", s
 def features(
     data: Annotated[Path, typer.Argument(help="An ingested site.", show_default=False)],
     out: OutOpt,
+    reuse: Annotated[Path | None, typer.Option(
+        "--reuse", help="An earlier `prior features` output: images it encoded (same bytes, same encoder) are "
+        "copied, only the others computed (after `siteloc update`).", show_default=False)] = None,
     config: ConfigOpt = "demo", set_: set_opt("prior.batch=32") = None,
     force: ForceOpt = False, verbose: VerboseOpt = False,
 ) -> None:
@@ -83,10 +86,13 @@ def features(
 
         from pipeline.prior.features import run_prior_features
 
-        path = run_prior_features(load(config, set_), inputs={"data": data}, outputs={"out": out}, force=force)
+        path = run_prior_features(load(config, set_), inputs={"data": data, **({"reuse": reuse} if reuse else {})},
+                                  outputs={"out": out}, force=force)
         r = json.loads((path / "report.json").read_text())
         typer.echo(f"{r['images']} images, {r['classes']} (room, area) classes; layers "
-                   + ", ".join(f"{k} {v}-d" for k, v in r["dims"].items()) + f" ({r['encoder']['weights']})")
+                   + ", ".join(f"{k} {v}-d" for k, v in r["dims"].items()) + f" ({r['encoder']['weights']}); "
+                   f"computed {r['computed_images']}" + (f", reused {r['reuse']['reused_images']}" if "reuse" in r
+                                                         else ""))
         echo_path("features", path)
 
 

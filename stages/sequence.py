@@ -40,6 +40,9 @@ Example: siteloc train-sequence data/reference/frames --data data/reference/inge
 def frame_features(
     data: Annotated[Path, typer.Argument(help="An ingested site with camera runs.", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)],
+    reuse: Annotated[Path | None, typer.Option(
+        "--reuse", help="An earlier frame-features output: frames it encoded (same bytes, same encoder) are "
+        "copied, only the others computed (after `siteloc update`).", show_default=False)] = None,
     config: ConfigOpt = "demo",
     set_: set_opt("sequence.batch=32") = None,
     force: ForceOpt = False,
@@ -50,9 +53,11 @@ def frame_features(
 
         from pipeline.sequence.frames import run_frame_features
 
-        path = run_frame_features(load(config, set_), inputs={"data": data}, outputs={"out": out}, force=force)
+        path = run_frame_features(load(config, set_), inputs={"data": data, **({"reuse": reuse} if reuse else {})},
+                                  outputs={"out": out}, force=force)
         r = json.loads((path / "report.json").read_text())
-        typer.echo(f"{r['frames']} frames of {len(r['runs'])} runs, {r['dim']}-d ({r['weights']})")
+        typer.echo(f"{r['frames']} frames of {len(r['runs'])} runs, {r['dim']}-d ({r['weights']}); computed "
+                   f"{r['computed_frames']}" + (f", reused {r['reuse']['reused_frames']}" if "reuse" in r else ""))
         echo_path("frames", path / "frames.parquet")
 
 

@@ -4,7 +4,9 @@ Input: an ingested site (images.parquet with room and area labels, images/). Eac
 pretrained CNN (`pipeline.descriptors.multilayer`); the three layers' l2-normalised raw vectors are
 written one Parquet file per layer (`<layer>.parquet`, kind `multilayer`: image_id, stop, room, area,
 split, pose, descriptor), with report.json and config.yaml. `prior build` compresses and indexes them;
-keeping them raw lets every compression be compared on the same vectors (the paper's Table I).
+keeping them raw lets every compression be compared on the same vectors (the paper's Table I). With
+`inputs['reuse']` (an earlier output), the vectors of images whose bytes it has seen under the same encoder
+are copied and only the others computed (pipeline.io.image_reuse).
 """
 
 from __future__ import annotations
@@ -82,19 +84,36 @@ def run_prior_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
         raise OutputExistsError(out)
     cols = labelled_images(data)
     enc = MultiLayerEncoder(p.backbone, p.weights, p.input_size, device=str(pick_device(p.device)))
-    chunks: dict[str, list] = {name: [] for name in enc.layers}
+    from pipeline.io.image_reuse import EarlierImages, encoder_key, image_hashes, state_digest, write_hashes
+
     ids = cols["image_id"]
-    bar = progress_bar(total=len(ids), desc=f"{p.backbone} layers", unit="image", enabled=progress)
-    for i in range(0, len(ids), p.batch):
-        batch = ids[i:i + p.batch]
-        for name, v in enc([load_image(data / m) for m in batch]).items():
-            chunks[name].append(v)
+    sha = image_hashes(data, ids)
+    key = encoder_key("prior-features", state_digest(enc.model), p.backbone, p.input_size, list(enc.layers))
+    earlier = (EarlierImages(inputs["reuse"], key, report_field="encoder_sha256", stage="prior features")
+               if inputs.get("reuse") else None)
+    rows: dict[str, list] = {name: [None] * len(ids) for name in enc.layers}
+    if earlier is not None and earlier.matches:
+        old_meta, old_raw, _ = read_layers(earlier.directory)
+        at = {i: k for k, i in enumerate(old_meta["image_id"])}
+        for k, image_id in enumerate(ids):
+            j = at.get(earlier.image_id(sha[image_id]))
+            if j is not None:
+                for name in enc.layers:
+                    rows[name][k] = old_raw[name][j]
+    todo = [k for k in range(len(ids)) if rows[enc.layers[0]][k] is None]
+    bar = progress_bar(total=len(todo), desc=f"{p.backbone} layers", unit="image", enabled=progress)
+    for i in range(0, len(todo), p.batch):
+        batch = todo[i:i + p.batch]
+        for name, v in enc([load_image(data / ids[k]) for k in batch]).items():
+            for k, row in zip(batch, v, strict=True):
+                rows[name][k] = row
         bar.update(len(batch))
     bar.close()
     with atomic_dir(out, force=force) as tmp:
         dims = {}
+        write_hashes(tmp, sha, ids)
         for name in enc.layers:
-            matrix = np.vstack(chunks[name])
+            matrix = np.stack(rows[name]).astype(np.float32)
             dims[name] = int(matrix.shape[1])
             tables.write_table(tmp / f"{name}.parquet", tables.to_table(
                 "multilayer", {**cols, "descriptor": tables.descriptor_array(matrix)}), "multilayer",
@@ -103,6 +122,9 @@ def run_prior_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
         write_text_atomic(tmp / "report.json", json.dumps({
             "data": str(data), "images": len(ids), "splits": splits,
             "classes": len(set(zip(cols["room"], cols["area"], strict=True))), "rooms": len(set(cols["room"])),
-            "encoder": enc.describe(), "dims": dims}, indent=2) + "\n")
+            "encoder": enc.describe(), "dims": dims, "encoder_sha256": key, "computed_images": len(todo),
+            **({"reuse": {"from": str(inputs["reuse"]), "encoder_matches": earlier.matches,
+                          "reused_images": len(ids) - len(todo)}} if earlier is not None else {})},
+            indent=2) + "\n")
         write_effective_config(cfg, tmp, stage="prior-features", inputs=inputs)
     return out

@@ -150,7 +150,8 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
     if backbone is not None:  # (absent for the detector: its fingerprints, and so resumable runs, stay as they were)
         settings["backbone"] = {"name": backbone.name, "weights_sha256": backbone.weights_sha256}
     fingerprint = _fingerprint(model_dir, images, settings)
-    from pipeline.retrieval.reuse import HASHES_FILE, ReusedDescriptors, describer_key, image_hashes
+    from pipeline.io.image_reuse import HASHES_FILE, image_hashes
+    from pipeline.retrieval.reuse import ReusedDescriptors, describer_key
     from pipeline.sitegen.asset_cache import sha256_file
 
     describer = describer_key(sha256_file(model_dir / "weights.safetensors"), settings)

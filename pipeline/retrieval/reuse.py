@@ -15,11 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import InputError, Problem
 from pipeline.io import tables
+from pipeline.io.image_reuse import HASHES_FILE, EarlierImages
 from pipeline.retrieval.descriptors import ImageDescriptors
-
-HASHES_FILE = "image_sha256.parquet"
 
 
 def describer_key(weights_sha256: str, settings: dict) -> str:
@@ -28,28 +26,13 @@ def describer_key(weights_sha256: str, settings: dict) -> str:
     return hashlib.sha256((weights_sha256 + json.dumps(keep, sort_keys=True)).encode()).hexdigest()
 
 
-def image_hashes(ingested: Path, image_ids: list[str]) -> dict[str, str]:
-    """{image_id: sha256}: the stops' from images.parquet (ingest computed them), the run frames' from their files."""
-    from pipeline.sitegen.asset_cache import sha256_file
-
-    t = tables.read_table(Path(ingested) / "images.parquet", "images").select(["image_id", "sha256"]).to_pydict()
-    known = dict(zip(t["image_id"], t["sha256"], strict=True))
-    return {i: known.get(i) or sha256_file(Path(ingested) / i) for i in dict.fromkeys(image_ids)}
-
-
 class ReusedDescriptors:
     """The rows of an earlier extraction, by image sha256; empty when its describer differs (`matches`)."""
 
     def __init__(self, directory: Path, describer: str):
         directory = Path(directory)
-        report_path = directory / "report.json"
-        if not report_path.is_file() or not (directory / HASHES_FILE).is_file():
-            raise InputError(f"{directory}: not an extraction this siteloc can reuse", [Problem(
-                str(directory), "no report.json or image_sha256.parquet",
-                fix="pass the --out of an earlier `siteloc extract` (extractions before image hashes were "
-                    "recorded cannot be reused: run without --reuse)")])
-        self.directory = directory
-        self.matches = json.loads(report_path.read_text()).get("describer_sha256") == describer
+        earlier = EarlierImages(directory, describer, report_field="describer_sha256", stage="extract")
+        self.directory, self.matches = directory, earlier.matches
         self._rows: dict[str, ImageDescriptors] = {}
         if not self.matches:
             return

@@ -8,7 +8,8 @@ globally, so no crop is needed. On a CPU (`sequence.engine: auto`) the classifie
 bundle carries (`export_frame_encoder`: the resize folded into two matrix products), checked against torch
 on the first frames of each size and run in several threads (`pipeline.onnx_threads`). Output:
 `frames.parquet` (kind `frames`: run, step, image_id, ground-truth pose, 1000-d logits), report.json,
-config.yaml.
+image_sha256.parquet, config.yaml. With `inputs['reuse']` (an earlier output), the logits of frames whose
+bytes it has seen under the same encoder are copied and only the others computed (pipeline.io.image_reuse).
 """
 
 from __future__ import annotations
@@ -95,8 +96,26 @@ def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     engine = resolve_engine(s.engine, device.type)
     # onnxruntime runs on the CPU here: the torch encoder it is checked against lives there too.
     enc = FrameEncoder(s.frame_weights, s.frame_size, device="cpu" if engine == "onnx" else str(device))
-    matrix, graphs = _encode_frames(enc, engine, [data / f[2] for f in frames], s.batch, cfg.export.parity_images,
-                                    progress)
+    from pipeline.io.image_reuse import EarlierImages, encoder_key, image_hashes, state_digest, write_hashes
+
+    ids = [f[2] for f in frames]
+    sha = image_hashes(data, ids)
+    key = encoder_key("frame-features", state_digest(enc.model), s.frame_size, engine)
+    earlier = (EarlierImages(inputs["reuse"], key, report_field="encoder_sha256", stage="frame-features")
+               if inputs.get("reuse") else None)
+    old = {}
+    if earlier is not None and earlier.matches:
+        t = tables.read_table(earlier.directory / "frames.parquet", "frames")
+        old = dict(zip(t.column("image_id").to_pylist(), tables.descriptor_matrix(t), strict=True))
+    found = [old.get(earlier.image_id(sha[i])) if earlier is not None else None for i in ids]
+    todo = [k for k, row in enumerate(found) if row is None]
+    graphs = {}
+    if todo:
+        fresh, graphs = _encode_frames(enc, engine, [data / ids[k] for k in todo], s.batch, cfg.export.parity_images,
+                                       progress)
+        for k, row in zip(todo, fresh, strict=True):
+            found[k] = row
+    matrix = np.stack(found).astype(np.float32)
     cols = {"run": [f[0] for f in frames], "step": [f[1] for f in frames], "image_id": [f[2] for f in frames],
             "gt_x": [f[3][0] for f in frames], "gt_y": [f[3][1] for f in frames], "gt_theta": [f[3][2] for f in frames],
             "descriptor": tables.descriptor_array(matrix)}
@@ -104,9 +123,13 @@ def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
         tables.write_table(tmp / "frames.parquet", tables.to_table("frames", cols), "frames",
                            metadata={"encoder": "efficientnet_lite0", "weights": enc.source,
                                      "frame_size": str(s.frame_size)})
+        write_hashes(tmp, sha, ids)
         write_text_atomic(tmp / "report.json", json.dumps({
             "frames": len(frames), "runs": sorted({f[0] for f in frames}), "dim": int(matrix.shape[1]),
-            "weights": enc.source, "engine": engine, **({"onnx": graphs} if graphs else {})}, indent=2) + "\n")
+            "weights": enc.source, "engine": engine, "encoder_sha256": key, "computed_frames": len(todo),
+            **({"reuse": {"from": str(inputs["reuse"]), "encoder_matches": earlier.matches,
+                          "reused_frames": len(frames) - len(todo)}} if earlier is not None else {}),
+            **({"onnx": graphs} if graphs else {})}, indent=2) + "\n")
         write_effective_config(cfg, tmp, stage="frame-features", inputs=inputs)
     return out
 

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.io.atomic import atomic_file, write_text_atomic
+from pipeline.io.hashing import sha256_file  # noqa: F401 - the asset cache's name for it
 from pipeline.sitegen.asset_types import MeshPart, Model, TextureInfo
 
 FORMAT = 1
@@ -71,14 +72,6 @@ class Archive:
         """Provenance text: package, archive (the jar by name even when read from its extracted copy), member."""
         label = self.name if self.path.is_dir() else self.path.name
         return f"Debian package {self.package}: {label}/{member.lstrip('/')}"
-
-
-def sha256_file(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _safe(name: str) -> str:

@@ -87,7 +87,8 @@ def _write_subset(src: Path, dst: Path, keep: list[bool]):
 
     dst.mkdir()
     shutil.copyfile(src / "report.json", dst / "report.json")
-    for f in src.glob("*.parquet"):
+    for layer in json.loads((src / "report.json").read_text())["encoder"]["layers"]:
+        f = src / f"{layer}.parquet"
         t = tables.read_table(f, "multilayer")
         tables.write_table(dst / f.name, t.filter(np.array(keep)), "multilayer")
 

@@ -10,8 +10,9 @@ import pytest
 
 from pipeline.errors import InputError
 from pipeline.io import tables
+from pipeline.io.image_reuse import HASHES_FILE
 from pipeline.retrieval.extract import run_extract
-from pipeline.retrieval.reuse import HASHES_FILE, ReusedDescriptors
+from pipeline.retrieval.reuse import ReusedDescriptors
 from pipeline.update.site_update import run_update
 from tests.fixtures.recapture import mirrored_stop
 
