@@ -90,7 +90,14 @@ def main() -> None:
                outputs={"out": w / "v1-x"}, progress=False)
     with (v1 / "captures.csv").open(newline="") as fh:
         rows = list(csv.DictReader(fh))
-    room = args.room or Counter(r["room"] for r in rows if r["room"]).most_common(1)[0][0]
+    ranked = [r for r, _ in Counter(r["room"] for r in rows if r["room"]).most_common()]
+    if args.move_wall_m and not args.room:  # the busiest room one of whose walls can move
+        from pipeline.sitegen.synth import build_scene
+        from pipeline.sitegen.wall_move import choose_wall_move
+
+        base = build_scene(preset, args.seed, False)
+        ranked = [r for r in ranked if choose_wall_move(base, args.seed, args.move_wall_m, (r,)) is not None]
+    room = args.room or ranked[0]
     print(f"change: room {room} ({sum(r['room'] == room for r in rows) // 6} of {len(rows) // 6} stops)")
     print("rebuild")
     full = timed("synth changed floor", t, run_synth, preset, outputs={"out": w / "v2-full"}, change_areas=(room,),

@@ -477,7 +477,7 @@ class CheckConfig(Strict):
                                    "under the bundle's baseline (the area's own, else the whole site's)")
     same_place_m: float = Field(0.3, gt=0, description="a database view within this many metres ...")
     same_place_deg: float = Field(15.0, gt=0, le=180, description="... and degrees of a new image shows its place")
-    min_place_likeness: float = Field(0.5, ge=0, le=1, description="... or whose new views look like the bundle's "
+    min_place_likeness: float = Field(0.8, ge=0, le=1, description="... or whose new views look like the bundle's "
                                       "at the same place less than this: 1 unchanged, 0 no closer than a neighbouring "
                                       "stop's view (the baseline's same-place similarity)")
     max_map_drop: float = Field(0.15, gt=0, le=1, description="retrain the detector when its mAP@0.5 on the new "

@@ -131,6 +131,11 @@ def _describe(r: dict) -> tuple[str, str]:
     if "map_50" in r:
         fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
         return (f"{r['images']} held-out images", f"mAP@0.5 {fmt(r['map_50'])}, mAP@[.5:.95] {fmt(r['map_50_95'])}")
+    if "recommendation" in r:  # check
+        rec = r["recommendation"]
+        return (f"{(r.get('images') or {}).get('images', 0)} new images, {r['map']['scans']} scans",
+                f"re-capture {', '.join(rec['recapture']) or 'none'}; "
+                f"map update {', '.join(rec['update_map']) or 'none'}")
     if "map" in r:
         return f"{r['images']} images", _map_size(r["map"])
     return "", ""

@@ -71,7 +71,7 @@ def test_the_dvc_pipeline_runs_is_recorded_and_reruns_only_what_changed(tmp_path
     assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
     summary = json.loads((project / "data" / "demo-summary.json").read_text())
     stages = set(summary) - {"total"}
-    assert len(stages) == 22 and not any(summary[s]["reused"] for s in stages)
+    assert len(stages) == 29 and not any(summary[s]["reused"] for s in stages)
     assert summary["ingest_bag"]["report"]["stops"] == summary["synth"]["report"]["stops"]  # the bag round trip
     assert summary["ingest_log@intel-corrected"]["report"]["scans"] == 20
     assert summary["synth"]["report"]["capture_images"] == 6 * summary["synth"]["report"]["stops"]
@@ -83,6 +83,13 @@ def test_the_dvc_pipeline_runs_is_recorded_and_reruns_only_what_changed(tmp_path
     assert provenance["inputs"]["model"]["dvc_md5"].endswith(".dir")  # the lock's entry for models/detector
     report = json.loads((project / "reports" / "tiny" / "metrics.json").read_text())
     assert report["summary"]["proposed"]["replays"] == len(report["runs"]) * report["trials"]
+    # The update chain: only the re-captured area's images are described again; v2 names v1 as its parent.
+    reuse = summary["extract_update"]["report"]
+    assert 0 < reuse["computed_images"] < reuse["images"] and reuse["reuse"]["describer_matches"]
+    v2 = json.loads((project / "bundles" / "update" / "tiny-0.1.1" / "manifest.json").read_text())
+    assert v2["parent"]["name"] == "tiny-0.1.0" and v2["changelog"]["areas_changed"]
+    assert all(a.startswith("corridor_h1") for a in v2["changelog"]["areas_changed"])
+    assert (project / "reports" / "tiny-check" / "drift.png").is_file()
 
     # dvc.lock matches the outputs: nothing is stale and a second run does nothing.
     status = _run([str(BIN / "dvc"), "status"], project)

@@ -4,8 +4,8 @@ Both bundles are read as they are on disk (`BundleView`); `export --parent` runs
 against its parent and ships the result as the new bundle's changelog, and `siteloc diff` prints it.
 A stop is identified by its id and fingerprinted by its images' (image id, sha256) pairs, so a stop
 re-captured under the same id shows as re-captured, not as kept. Map cells are counted per area of the
-newer bundle's stops (the geodesic partition of `pipeline.update.areas`). A model or database is kept
-when the input it was exported from has the same content hash (manifest `provenance`).
+newer bundle's database stops on the older map (the geodesic partition `update` patches by). A model or
+database is kept when the input it was exported from has the same content hash (manifest `provenance`).
 """
 
 from __future__ import annotations
@@ -115,7 +115,7 @@ def _map(a: BundleView, b: BundleView) -> dict:
     stops = stops_of(b.images)
     per_area: dict[str, int] = {}
     if changed.any() and stops.stop_id:
-        owner, names = cell_owners(n, stops.xy, stops.keys())
+        owner, names = cell_owners(m, stops.xy, stops.keys())  # as `update` splits the map it patches
         counts = np.bincount(owner[changed], minlength=len(names))
         per_area = {names[i]: int(c) for i, c in enumerate(counts) if c}
     return {"same_frame": True, "cells_changed": int(changed.sum()),
@@ -182,7 +182,8 @@ def diff_md(d: dict) -> str:
                      f"{m['cells_no_longer_occupied']} no longer occupied).")
         outside = {k: v for k, v in m["per_area"].items() if k not in d["areas_changed"]}
         if outside:
-            lines.append(f"Of them in areas whose stops did not change: {json.dumps(outside)}.")
+            lines.append(f"Of them in areas whose stops did not change: {json.dumps(outside)} (cells go to the area "
+                         "of the nearest database stop, so a changed area's edge can fall in its neighbour).")
     lines += ["", "Inputs: " + (", ".join(f"{k} {v}" for k, v in d["components"].items()) or "not recorded") + "."]
     f = d["files"]
     lines += ["", f"Files: {len(f['same'])} identical, {len(f['changed'])} changed, {len(f['added'])} added, "
