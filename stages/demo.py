@@ -84,6 +84,10 @@ def _describe(r: dict) -> tuple[str, str]:
         best = max(r["table_one"], key=lambda row: row.get("area_accuracy") or 0)
         return (f"{len(r['table_one'])} compressions", f"area accuracy {best['area_accuracy']:.3f} "
                 f"({best['compression']}), room {best['room_accuracy']:.3f}")
+    if r.get("updated"):  # prior update
+        u = r["updated"][-1]
+        return (f"{u['kept'] + u['added']} images", f"kept {u['kept']}, dropped {u['dropped']}, added "
+                f"{u['added']}; {len(u['refitted_classes']) + len(u['new_classes'])} classes refitted")
     if "compression" in r and "classes" in r:  # prior build
         return f"{r['images']} images", f"{r['classes']} (room, area) classes, {r['compression'].get('method', '')}"
     if "encoder" in r and "dims" in r:  # prior features

@@ -18,7 +18,7 @@ compressed to 128-d (prior.compression: ipca, kpca, srp, grp or none), indexed i
 by Spearman or Pearson correlation (or the Gaussians, prior.measure) and the layers mixed by
 prior.layer_weights. New areas are appended without refitting anything else.
 
-Steps: features -> build -> (append) -> query / evaluate.
+Steps: features -> build -> (append / update) -> query / evaluate.
 """
 
 FEATURES_HELP = """Compute the three layers' vectors of every capture image of an ingested site.
@@ -45,6 +45,18 @@ FEATURES is a `siteloc prior features` output of the new images (same config as 
 keeps only the named rooms. Writes a new prior directory (--out); the old one is left as it is.
 
 Example: siteloc prior append models/prior data/wing-b/multilayer --room R40 --out models/prior-wing-b
+"""
+
+UPDATE_HELP = """Bring a prior to the images of an updated site, refitting only the classes that changed.
+
+FEATURES is a `siteloc prior features` output of the site after `siteloc update` (same config as the
+prior; --reuse the prior's features there so that only new images are encoded). An image is the same
+when its id and sha256 are: the prior's rows of images gone or re-captured are dropped, the new images
+compressed with the fitted compressions and added, and the Gaussians of the classes that lost or got
+images refitted; a class left without images goes. Everything else is kept bit for bit. Writes a new
+prior directory (--out); report.json lists what changed under `updated`.
+
+Example: siteloc prior update models/prior data/office/multilayer-v2 --out models/prior-v2
 """
 
 QUERY_HELP = """Print the most probable (room, area) classes of camera images.
@@ -138,6 +150,29 @@ def append(
         a = json.loads((path / "report.json").read_text())["appended"][-1]
         typer.echo(f"appended {a['images']} images: {a['new_classes']} new classes, "
                    f"{a['refitted_classes']} known classes refitted")
+        echo_path("prior", path)
+
+
+@app.command("update", help=help_text(UPDATE_HELP))
+def update(
+    prior: Annotated[Path, typer.Argument(help="A `prior build` output.", show_default=False)],
+    features_dir: Annotated[Path, typer.Argument(metavar="FEATURES", help="Features of the updated site.",
+                                                 show_default=False)],
+    out: OutOpt,
+    config: ConfigOpt = "demo", set_: set_opt("prior.seed=1") = None,
+    force: ForceOpt = False, verbose: VerboseOpt = False,
+) -> None:
+    with cli_errors(verbose):
+        import json
+
+        from pipeline.prior.build import run_prior_update
+
+        path = run_prior_update(load(config, set_), inputs={"prior": prior, "features": features_dir},
+                                outputs={"out": out}, force=force)
+        u = json.loads((path / "report.json").read_text())["updated"][-1]
+        typer.echo(f"kept {u['kept']} images, dropped {u['dropped']}, added {u['added']}: "
+                   f"{len(u['refitted_classes'])} classes refitted, {len(u['new_classes'])} new, "
+                   f"{len(u['removed_classes'])} removed")
         echo_path("prior", path)
 
 

@@ -33,6 +33,10 @@ Writes weights.safetensors, config.json, database.parquet, whitening.npz, metric
 recall@1 / @4 within 2 m on the query runs for lengths 1-10 and for single frames), config.yaml.
 Checkpoints after every epoch; an interrupted training resumes when rerun with the same settings.
 
+--keep-model MODEL (after `siteloc update`): no training; MODEL's LSTM and whitening describe the mapping
+windows of FRAMES (`frame-features --reuse` of the updated site), which become the new database. Windows
+of unchanged frames keep their descriptors; MODEL's files are copied, its length and places kept.
+
 Example: siteloc train-sequence data/reference/frames --data data/reference/ingested --out models/sequence
 """
 
@@ -65,6 +69,9 @@ def train_sequence(
     frames: Annotated[Path, typer.Argument(help="The output of `siteloc frame-features`.", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)],
     data: Annotated[Path | None, typer.Option("--data", help="The ingested site (kidnappings of its runs).")] = None,
+    keep_model: Annotated[Path | None, typer.Option(
+        "--keep-model", help="A `train-sequence` output whose LSTM and whitening describe FRAMES: a new "
+        "database, no training (after `siteloc update`).", show_default=False)] = None,
     config: ConfigOpt = "demo",
     set_: set_opt("sequence.epochs=50") = None,
     force: ForceOpt = False,
@@ -73,13 +80,21 @@ def train_sequence(
     with cli_errors(verbose):
         import json
 
-        from pipeline.sequence.train import run_train_sequence
-
         inputs = {"frames": frames, **({"data": data} if data else {})}
-        path = run_train_sequence(load(config, set_), inputs=inputs, outputs={"out": out}, force=force)
+        if keep_model is not None:
+            from pipeline.sequence.database import run_sequence_database
+
+            path = run_sequence_database(load(config, set_), inputs={**inputs, "model": keep_model},
+                                         outputs={"out": out}, force=force)
+        else:
+            from pipeline.sequence.train import run_train_sequence
+
+            path = run_train_sequence(load(config, set_), inputs=inputs, outputs={"out": out}, force=force)
         m = json.loads((path / "metrics.json").read_text())
-        typer.echo(f"{m['train_windows']} windows, {m['places']} places, loss {m['loss_history'][0]:.3f} -> "
-                   f"{m['loss_history'][-1]:.3f}, descriptor {m['dims']}-d ({m['dims_cap']})")
+        trained = (f"loss {m['loss_history'][0]:.3f} -> {m['loss_history'][-1]:.3f}" if m["loss_history"]
+                   else f"the LSTM of {m['kept_model']}")
+        typer.echo(f"{m['train_windows']} windows, {m['places']} places, {trained}, descriptor {m['dims']}-d "
+                   f"({m['dims_cap']})")
         for name, r in m["recall"].items():
             typer.echo(f"  {name}: recall@1 {r['recall_at_1_2m']:.3f}, @4 {r['recall_at_4_2m']:.3f} within 2 m "
                        f"({r['queries']} queries; {r['reachable_2m']:.0%} have a mapping window that close: "

@@ -71,7 +71,7 @@ def test_the_dvc_pipeline_runs_is_recorded_and_reruns_only_what_changed(tmp_path
     assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
     summary = json.loads((project / "data" / "demo-summary.json").read_text())
     stages = set(summary) - {"total"}
-    assert len(stages) == 29 and not any(summary[s]["reused"] for s in stages)
+    assert len(stages) == 33 and not any(summary[s]["reused"] for s in stages)
     assert summary["ingest_bag"]["report"]["stops"] == summary["synth"]["report"]["stops"]  # the bag round trip
     assert summary["ingest_log@intel-corrected"]["report"]["scans"] == 20
     assert summary["synth"]["report"]["capture_images"] == 6 * summary["synth"]["report"]["stops"]
@@ -90,6 +90,17 @@ def test_the_dvc_pipeline_runs_is_recorded_and_reruns_only_what_changed(tmp_path
     assert v2["parent"]["name"] == "tiny-0.1.0" and v2["changelog"]["areas_changed"]
     assert all(a.startswith("corridor_h1") for a in v2["changelog"]["areas_changed"])
     assert (project / "reports" / "tiny-check" / "drift.png").is_file()
+    # The area prior follows: the re-captured images replace their old rows, the rest are reused.
+    feats = summary["prior_features_update"]["report"]
+    assert 0 < feats["reuse"]["reused_images"] < feats["images"]
+    u = summary["prior_update"]["report"]["updated"][-1]
+    assert u["added"] > 0 and u["dropped"] > 0 and u["kept"] > u["added"]
+    assert v2["changelog"]["components"]["prior"] == "changed"
+    # So does the sequence database: frames encoded only where they changed, described by the LSTM in use.
+    frames = summary["frame_features_update"]["report"]
+    assert 0 < frames["reuse"]["reused_frames"] and frames["computed_frames"] < frames["frames"]
+    assert summary["sequence_update"]["report"]["epochs"] == 0
+    assert v2["changelog"]["components"]["sequence"] == "changed"
 
     # dvc.lock matches the outputs: nothing is stale and a second run does nothing.
     status = _run([str(BIN / "dvc"), "status"], project)

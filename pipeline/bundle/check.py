@@ -137,9 +137,11 @@ def recommendation(areas: dict, images: dict, baseline: dict | None, cfg: Sitelo
     if new_map is None or base_map is None:
         lines.append("Detector: not measured (the new images have no boxes, or the bundle has no baseline).")
     else:
-        lines.append(f"Retrain the detector (mAP@0.5 {new_map:.2f} against {base_map:.2f}; train-detector "
-                     f"--init-from)." if retrain else f"The detector holds (mAP@0.5 {new_map:.2f} against "
-                     f"{base_map:.2f}).")
+        tol = cfg.check.max_map_drop
+        lines.append(f"Retrain the detector: mAP@0.5 {new_map:.2f} on the new images against {base_map:.2f} at "
+                     f"export, a drop beyond check.max_map_drop {tol:.2f} (train-detector --init-from)." if retrain
+                     else f"The detector need not be retrained: mAP@0.5 {new_map:.2f} on the new images against "
+                     f"{base_map:.2f} at export, within check.max_map_drop {tol:.2f}.")
     return {"recapture": recapture, "update_map": remap, "retrain_detector": bool(retrain), "text": lines}
 
 

@@ -5,6 +5,8 @@
   and config.yaml.
 - `append`: a new area's (or a changed area's) images into a copy of a prior, with its fitted
   compressions; nothing else is refitted (the paper's scalability argument).
+- `update`: a copy of a prior brought to the images of a newer `prior features` output (after `siteloc
+  update`): rows whose image bytes are gone are dropped, new images appended, the rest kept bit for bit.
 - `query`: camera images to (room, area) probabilities.
 """
 
@@ -42,13 +44,16 @@ def run_prior_build(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
     if keep.sum() < 2:
         raise InputError(f"{inputs['features']}: too few database images", [Problem(
             str(inputs["features"]), f"{int(keep.sum())} images in the database", fix="use --all, or more captures")])
+    sha = _feature_hashes(Path(inputs["features"]))
     meta, raw = select(meta, raw, keep)
     prior = build_prior(cfg, meta, raw, rep["encoder"])
     comps = {n: {"kind": prior.compressors[n].KIND, "dims": int(prior.compressors[n].n_components_),
                  "cap": prior.compressors[n].cap_reason_} for n in prior.layers}
     with atomic_dir(out, force=force) as tmp:
         prior.save(tmp)
-        write_text_atomic(tmp / "report.json", _report(prior, {"compression": comps, "appended": []}))
+        _write_prior_hashes(tmp, prior, sha)
+        write_text_atomic(tmp / "report.json", _report(prior, {
+            "database": "all" if all_images else "train", "compression": comps, "appended": []}))
         write_effective_config(cfg, tmp, stage="prior-build", inputs=inputs)
     return out
 
@@ -89,13 +94,100 @@ def run_prior_append(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: di
     appended = doc.get("appended", []) + [{"features": str(feats), "images": len(meta["image_id"]),
                                            "new_classes": len(prior.classes) - before,
                                            "refitted_classes": len([k for k in touched if k < before])}]
+    sha = {**_prior_hashes(src, required=False), **_feature_hashes(feats)}
     with atomic_dir(out, force=force) as tmp:
         prior.save(tmp)
-        extra = {"compression": doc.get("compression"), "appended": appended}
+        _write_prior_hashes(tmp, prior, sha)
+        extra = {k: doc[k] for k in ("database", "updated") if k in doc}
+        extra |= {"compression": doc.get("compression"), "appended": appended}
         write_text_atomic(tmp / "report.json", _report(prior, extra))
         if (src / "config.yaml").is_file():
             shutil.copyfile(src / "config.yaml", tmp / "build_config.yaml")
         write_effective_config(cfg, tmp, stage="prior-append", inputs=inputs)
+    return out
+
+
+def _feature_hashes(features: Path) -> dict[str, str]:
+    """{image_id: sha256} of a `prior features` output ({} for one written before hashes were kept)."""
+    from pipeline.io import tables
+    from pipeline.io.image_reuse import HASHES_FILE
+
+    if not (Path(features) / HASHES_FILE).is_file():
+        return {}
+    t = tables.read_table(Path(features) / HASHES_FILE, "image_hashes").to_pydict()
+    return dict(zip(t["image_id"], t["sha256"], strict=True))
+
+
+def _prior_hashes(prior_dir: Path, *, required: bool = True) -> dict[str, str]:
+    from pipeline.io.image_reuse import HASHES_FILE
+
+    sha = _feature_hashes(prior_dir)
+    if required and not sha:
+        raise InputError(f"{prior_dir}: the prior does not record its images' sha256", [Problem(
+            str(Path(prior_dir) / HASHES_FILE), "missing (a prior built before image hashes were kept)",
+            fix="rebuild it: `siteloc prior features DATA --out F` then `siteloc prior build F --out PRIOR`")])
+    return sha
+
+
+def _write_prior_hashes(tmp: Path, prior, sha: dict[str, str]) -> None:
+    """The prior's own image_sha256.parquet, when every row's hash is known (what `prior update` compares)."""
+    from pipeline.io.image_reuse import write_hashes
+
+    ids = prior.rows["image_id"]
+    if ids and all(i in sha for i in ids):
+        write_hashes(tmp, sha, ids)
+
+
+def run_prior_update(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
+                     force: bool = False) -> Path:
+    """A copy of `inputs['prior']` brought to the database images of `inputs['features']` (same encoder).
+
+    An image is the same when its id and sha256 are; the prior's rows of images gone or changed are
+    dropped, the new ones compressed with the fitted compressions and added. Nothing else is refitted."""
+    from pipeline.errors import OutputExistsError
+    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.prior.features import read_layers, select
+    from pipeline.prior.model import AreaPrior
+
+    out = Path(outputs["out"])
+    if out.exists() and not force:
+        raise OutputExistsError(out)
+    src, feats = Path(inputs["prior"]), Path(inputs["features"])
+    prior = AreaPrior.load(src)
+    old_sha = _prior_hashes(src)
+    meta, raw, rep = read_layers(feats)
+    if rep["encoder"] != prior.encoder:
+        raise InputError(f"{feats}: encoded otherwise than the prior", [Problem(
+            str(feats / "report.json"), f"encoder {rep['encoder']}, the prior's {prior.encoder}",
+            fix="run `siteloc prior features` with the config the prior was built with")])
+    new_sha = _feature_hashes(feats)
+    if not new_sha:
+        raise InputError(f"{feats}: no image hashes", [Problem(
+            str(feats), "written before image hashes were kept", fix="run `siteloc prior features` again")])
+    doc = json.loads((src / "report.json").read_text()) if (src / "report.json").is_file() else {}
+    database = doc.get("database", "train")
+    in_db = np.ones(len(meta["image_id"]), bool) if database == "all" else np.asarray(meta["split"]) == "train"
+    now = {(i, new_sha[i]) for i, d in zip(meta["image_id"], in_db, strict=True) if d}
+    keep = np.array([(i, old_sha[i]) in now for i in prior.rows["image_id"]], dtype=bool)
+    had = {(i, old_sha[i]) for i in prior.rows["image_id"]}
+    add = [n for n, i in enumerate(meta["image_id"]) if in_db[n] and (i, new_sha[i]) not in had]
+    if keep.sum() + len(add) < 2:
+        raise InputError(f"{feats}: too few database images", [Problem(
+            str(feats), f"{int(keep.sum()) + len(add)} images would be left",
+            fix="point at the updated site's features")])
+    meta, raw = select(meta, raw, np.asarray(add, dtype=np.int64))
+    change = prior.replace(keep, meta, raw)
+    updated = doc.get("updated", []) + [{"features": str(feats), **change}]
+    with atomic_dir(out, force=force) as tmp:
+        prior.save(tmp)
+        _write_prior_hashes(tmp, prior, {**old_sha, **new_sha})
+        extra = {k: doc[k] for k in ("database", "compression", "appended") if k in doc}
+        write_text_atomic(tmp / "report.json", _report(prior, {**extra, "updated": updated}))
+        for name in ("build_config.yaml", "config.yaml"):  # the build's settings, through any chain of updates
+            if (src / name).is_file():
+                shutil.copyfile(src / name, tmp / "build_config.yaml")
+                break
+        write_effective_config(cfg, tmp, stage="prior-update", inputs=inputs)
     return out
 
 

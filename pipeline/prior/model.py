@@ -89,6 +89,37 @@ class AreaPrior:
             self.gaussians[name].update(self.vectors[name], self.labels, touched)
         return touched
 
+    def replace(self, keep: np.ndarray, meta: dict, raw: dict[str, np.ndarray]) -> dict:
+        """Drop the rows where `keep` is False and add new images, with the fitted compressions.
+
+        Kept rows, and the Gaussians of classes that neither lost nor got a row, stay bit for bit; a class
+        left without rows is removed. Returns the counts and the classes refitted, added and removed."""
+        keep = np.asarray(keep, dtype=bool)
+        if keep.shape != self.labels.shape:
+            raise ValueError(f"keep has {keep.size} entries for {self.labels.size} rows")
+        incoming = set(zip(meta["room"], meta["area"], strict=True))
+        alive = np.zeros(len(self.classes), dtype=bool)
+        alive[np.unique(self.labels[keep])] = True
+        alive |= np.array([c in incoming for c in self.classes], dtype=bool)
+        renumber = np.cumsum(alive) - 1
+        lost = {int(renumber[k]) for k in np.unique(self.labels[~keep]) if alive[k]}
+        removed = [self.classes[k] for k in np.flatnonzero(~alive)]
+        known = {c for c, a in zip(self.classes, alive, strict=True) if a}
+        self.classes = [c for c, a in zip(self.classes, alive, strict=True) if a]
+        self.rows = {c: [v for v, k in zip(vals, keep, strict=True) if k] for c, vals in self.rows.items()}
+        self.xyt, self.labels = self.xyt[keep], renumber[self.labels[keep]]
+        for name in self.layers:
+            self.vectors[name] = self.vectors[name][keep]
+            self.gaussians[name].keep(alive)
+        self._trees, self._std = {}, {}
+        touched = sorted(lost | set(self._add(meta, raw))) if len(meta["room"]) else sorted(lost)
+        for name in self.layers:
+            self.gaussians[name].update(self.vectors[name], self.labels, touched)
+        return {"kept": int(keep.sum()), "dropped": int((~keep).sum()), "added": len(meta["room"]),
+                "refitted_classes": [list(self.classes[k]) for k in touched if self.classes[k] in known],
+                "new_classes": [list(self.classes[k]) for k in touched if self.classes[k] not in known],
+                "removed_classes": [list(c) for c in removed]}
+
     def _add(self, meta: dict, raw: dict[str, np.ndarray]) -> list[int]:
         index = {c: i for i, c in enumerate(self.classes)}
         labels = []

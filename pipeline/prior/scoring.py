@@ -92,6 +92,13 @@ class ClassGaussians:
             self.logdet_[k] = 2.0 * np.sum(np.log(np.diag(chol)))
         return self
 
+    def keep(self, classes: np.ndarray) -> ClassGaussians:
+        """Only the classes where `classes` (a boolean mask) is True, renumbered in order; fitted as they were."""
+        classes = np.asarray(classes, dtype=bool)
+        for f in ("mean_", "chol_", "logdet_", "alpha_", "count_"):
+            setattr(self, f, getattr(self, f)[classes])
+        return self
+
     def covariance(self, k: int) -> np.ndarray:
         return self.chol_[k] @ self.chol_[k].T
 

@@ -178,11 +178,7 @@ def run_train_sequence(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
             # how the frames were encoded: the runtime's camera images must be encoded the same way
             "frame_encoder": tables.table_metadata(tables.read_table(frames_path, "frames"))}, indent=2) + "\n")
         whitening.save(tmp / "whitening.npz")
-        tables.write_table(tmp / "database.parquet", tables.to_table("sequences", {
-            "run": frames.run[last].tolist(), "end_step": frames.step[last].tolist(),
-            "x": frames.pose[last, 0], "y": frames.pose[last, 1], "theta": frames.pose[last, 2],
-            "descriptor": tables.descriptor_array(db.astype(np.float32))}), "sequences",
-            metadata={"length": str(s.length)})
+        write_database(tmp / "database.parquet", frames, last, db, s.length)
         write_text_atomic(tmp / "metrics.json", json.dumps(metrics, indent=2) + "\n")
         write_tracked(tmp, metrics, s.length)
         write_effective_config(cfg, tmp, stage="train-sequence", inputs=inputs)
@@ -190,6 +186,14 @@ def run_train_sequence(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
         ckpt_path.unlink()
         partial.rmdir()
     return out
+
+
+def write_database(path: Path, frames: Frames, last: np.ndarray, db: np.ndarray, length: int) -> Path:
+    """database.parquet (kind `sequences`): each window's whitened descriptor and its last frame's pose."""
+    return tables.write_table(path, tables.to_table("sequences", {
+        "run": frames.run[last].tolist(), "end_step": frames.step[last].tolist(),
+        "x": frames.pose[last, 0], "y": frames.pose[last, 1], "theta": frames.pose[last, 2],
+        "descriptor": tables.descriptor_array(db.astype(np.float32))}), "sequences", metadata={"length": str(length)})
 
 
 def headline(metrics: dict, length: int) -> dict:

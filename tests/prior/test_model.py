@@ -206,3 +206,54 @@ def test_memory_is_the_compression_plus_the_database(site):
             want = prior.compressors[n].nbytes() + prior.vectors[n].size * 4
             assert prior.nbytes()[n] == want
     assert build(meta, raw, compression="none").nbytes()["low"] == len(meta["image_id"]) * LAYERS["low"] * 4
+
+
+def test_replace_keeps_untouched_rows_and_classes_bit_for_bit(site):
+    """One class re-captured (its rows replaced), one gone, one new: kept rows and the Gaussians of
+    untouched classes are as they were; the touched ones equal a fresh fit of their rows."""
+    from pipeline.prior.scoring import ClassGaussians
+
+    meta, raw, _, qraw, centres = site
+    prior = build(meta, raw)
+    old_vec = {n: prior.vectors[n].copy() for n in LAYERS}
+    old_g = {n: {f: v.copy() for f, v in prior.gaussians[n].arrays().items()} for n in LAYERS}
+    rows = np.asarray(list(zip(meta["room"], meta["area"], strict=True)), dtype=object)
+    recaptured, gone = ("R1", "a"), ("R2", "a")
+    keep = np.array([tuple(c) not in (recaptured, gone) for c in rows])
+    rng = np.random.default_rng(5)
+    shifted = {n: {recaptured: centres[n][recaptured] + 0.5} for n in LAYERS}
+    nmeta, nraw, _ = make_images(rng, [recaptured], 7, centres=shifted)
+    wmeta, wraw, _ = make_images(rng, [("R7", "a")], 4)
+    both = {k: nmeta[k] + wmeta[k] for k in nmeta}
+    braw = {n: np.vstack([nraw[n], wraw[n]]) for n in LAYERS}
+    change = prior.replace(keep, both, braw)
+
+    assert change["kept"] == keep.sum() and change["dropped"] == (~keep).sum() and change["added"] == 11
+    assert change["removed_classes"] == [list(gone)] and change["new_classes"] == [["R7", "a"]]
+    assert change["refitted_classes"] == [list(recaptured)]
+    assert prior.classes == [("R0", "a"), ("R0", "b"), ("R1", "a"), ("R1", "b"), ("R7", "a")]
+    assert prior.rows["image_id"] == [i for i, k in zip(meta["image_id"], keep, strict=True) if k] + both["image_id"]
+    untouched = {("R0", "a"): 0, ("R0", "b"): 1, ("R1", "b"): 3}  # class -> its number before
+    for n in LAYERS:
+        np.testing.assert_array_equal(prior.vectors[n][: keep.sum()], old_vec[n][keep])
+        np.testing.assert_array_equal(prior.vectors[n][keep.sum():], prior.compressors[n].transform(braw[n]))
+        g = prior.gaussians[n]
+        for c, before in untouched.items():
+            k = prior.classes.index(c)
+            for f in ("mean_", "chol_", "logdet_", "alpha_", "count_"):
+                np.testing.assert_array_equal(getattr(g, f)[k], old_g[n][f][before])
+        # the touched classes: a fresh fit of their rows with the build's pooled scale
+        twin = ClassGaussians(g.shrinkage)
+        twin.sigma2_, twin.mean_ = g.sigma2_, np.zeros((0, g.mean_.shape[1]))
+        twin.chol_, twin.logdet_ = np.zeros((0,) + g.chol_.shape[1:]), np.zeros(0)
+        twin.alpha_, twin.count_ = np.zeros(0), np.zeros(0, dtype=np.int64)
+        twin.update(prior.vectors[n], prior.labels, range(len(prior.classes)))
+        for c in (recaptured, ("R7", "a")):
+            k = prior.classes.index(c)
+            np.testing.assert_allclose(g.mean_[k], twin.mean_[k], rtol=1e-12)
+            np.testing.assert_allclose(g.chol_[k], twin.chol_[k], rtol=1e-10, atol=1e-12)
+            assert g.count_[k] == (prior.labels == k).sum()
+    # queries work and never name the class that went
+    probs = prior.probabilities(qraw)
+    assert probs.shape == (len(qraw["low"]), 5)
+    np.testing.assert_allclose(probs.sum(axis=1), 1.0)

@@ -93,6 +93,65 @@ def _write_subset(src: Path, dst: Path, keep: list[bool]):
         tables.write_table(dst / f.name, t.filter(np.array(keep)), "multilayer")
 
 
+def test_update_drops_changed_images_adds_new_ones_and_keeps_the_rest(prior_dirs, tmp_path):
+    """The site after an update, as `prior features` sees it: one area's images re-captured (same ids,
+    new bytes), another area's gone. The updated prior holds exactly the new database images."""
+    from pipeline.io import tables
+    from pipeline.io.image_reuse import HASHES_FILE
+    from pipeline.prior.features import read_layers
+    from pipeline.prior.model import AreaPrior
+
+    _, _, root = prior_dirs
+    meta, _, _ = read_layers(root / "f")
+    prior = AreaPrior.load(root / "p")
+    assert (root / "p" / HASHES_FILE).is_file()
+    classes = sorted(set(zip(meta["room"], meta["area"], strict=True)))
+    changed, gone = classes[0], classes[-1]
+    rows = list(zip(meta["room"], meta["area"], strict=True))
+    f2 = tmp_path / "f2"
+    _write_subset(root / "f", f2, [c != gone for c in rows])
+    sha = tables.read_table(root / "f" / HASHES_FILE, "image_hashes").to_pydict()
+    new_sha = [h if c != changed else "0" * 64 for h, c in zip(sha["sha256"], rows, strict=True)]
+    keep = [c != gone for c in rows]
+    tables.write_table(f2 / HASHES_FILE, tables.to_table("image_hashes", {
+        "image_id": [i for i, k in zip(sha["image_id"], keep, strict=True) if k],
+        "sha256": [h for h, k in zip(new_sha, keep, strict=True) if k]}), "image_hashes")
+    out = cli("prior", "update", str(root / "p"), str(f2), "--out", str(tmp_path / "p2"))
+    assert "removed" in out and "Traceback" not in out
+    grown = AreaPrior.load(tmp_path / "p2")
+    train = [i for i, (m, s) in enumerate(zip(rows, meta["split"], strict=True)) if s == "train"]
+    stay = [meta["image_id"][i] for i in train if rows[i] not in (changed, gone)]
+    redo = [meta["image_id"][i] for i in train if rows[i] == changed]
+    assert grown.rows["image_id"] == stay + redo
+    assert gone not in grown.classes and changed in grown.classes
+    old_row = {i: n for n, i in enumerate(prior.rows["image_id"])}
+    for n in prior.layers:
+        np.testing.assert_array_equal(grown.vectors[n][: len(stay)], prior.vectors[n][[old_row[i] for i in stay]])
+    u = json.loads((tmp_path / "p2" / "report.json").read_text())["updated"][-1]
+    assert (u["kept"], u["added"], u["dropped"]) == (len(stay), len(redo), len(prior.labels) - len(stay))
+    assert u["removed_classes"] == [list(gone)] and u["refitted_classes"] == [list(changed)]
+    # the same features again: nothing to change, and the prior is byte for byte the same
+    cli("prior", "update", str(tmp_path / "p2"), str(f2), "--out", str(tmp_path / "p3"))
+    again = json.loads((tmp_path / "p3" / "report.json").read_text())["updated"][-1]
+    assert (again["dropped"], again["added"]) == (0, 0)
+    for name in ("db_pool.parquet", "pool_gaussians.npz", HASHES_FILE):
+        assert (tmp_path / "p2" / name).read_bytes() == (tmp_path / "p3" / name).read_bytes()
+
+
+def test_update_refuses_a_prior_without_image_hashes(prior_dirs, tmp_path):
+    import shutil
+
+    from pipeline.io.image_reuse import HASHES_FILE
+
+    _, _, root = prior_dirs
+    shutil.copytree(root / "p", tmp_path / "old")
+    (tmp_path / "old" / HASHES_FILE).unlink()
+    result = runner.invoke(app, ["prior", "update", str(tmp_path / "old"), str(root / "f"), "--out",
+                                 str(tmp_path / "p2"), "--config", "ci", *[x for s in SETS for x in ("--set", s)]])
+    assert result.exit_code == 1 and "sha256" in result.output and "rebuild it" in result.output
+    assert "Traceback" not in result.output and not (tmp_path / "p2").exists()
+
+
 def test_evaluate_writes_table_one_and_the_seeding_comparison(prior_dirs):
     ing, bundle, root = prior_dirs
     # the site's own features stand in for a changed site's: the path is exercised, the figures are checked

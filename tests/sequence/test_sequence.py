@@ -165,3 +165,53 @@ def test_cli_trains_and_refuses_a_site_without_frames(frames, tmp_path):
     (empty / "runs").mkdir(parents=True)
     res = CliRunner().invoke(app, ["frame-features", str(empty), "--out", str(tmp_path / "x"), "--config", "ci"])
     assert res.exit_code == 1 and "no run has camera frames" in res.output and "Traceback" not in res.output
+
+
+def test_keep_model_describes_new_frames_with_the_trained_lstm(frames, tmp_path):
+    """The database of frames changed in one stretch of a mapping run: windows that do not touch the
+    stretch keep the trained database's descriptors, those that do differ; nothing is trained."""
+    import pyarrow.parquet as pq
+    from typer.testing import CliRunner
+
+    import pipeline.sequence.train as T
+    from pipeline.io import tables
+    from pipeline.sequence.database import run_sequence_database
+    from stages.app import app
+
+    cfg, ing, fr = frames
+    trained = T.run_train_sequence(cfg, inputs={"frames": fr}, outputs={"out": tmp_path / "s"}, progress=False)
+    t = pq.read_table(fr / "frames.parquet")
+    f = T.Frames(fr / "frames.parquet")
+    run = sorted(r for r in set(f.run) if r.startswith("mapping"))[0]
+    steps = sorted(int(s) for s, r in zip(t.column("step").to_pylist(), t.column("run").to_pylist(), strict=True)
+                   if r == run)
+    changed_steps = set(steps[len(steps) // 2: len(steps) // 2 + 4])
+    rows = [i for i, (s, r) in enumerate(zip(t.column("step").to_pylist(), t.column("run").to_pylist(), strict=True))
+            if r == run and int(s) in changed_steps]
+    d = tables.descriptor_matrix(t).copy()
+    d[rows] = np.random.default_rng(0).standard_normal((len(rows), d.shape[1])).astype(np.float32)
+    (tmp_path / "f2").mkdir()
+    pq.write_table(t.set_column(t.column_names.index("descriptor"), "descriptor", tables.descriptor_array(d)),
+                   tmp_path / "f2" / "frames.parquet")
+    out = run_sequence_database(cfg, inputs={"frames": tmp_path / "f2", "model": trained},
+                                outputs={"out": tmp_path / "db"})
+    old = tables.read_table(trained / "database.parquet", "sequences")
+    new = tables.read_table(out / "database.parquet", "sequences")
+    assert new.column("end_step").to_pylist() == old.column("end_step").to_pylist()
+    a, b = tables.descriptor_matrix(old), tables.descriptor_matrix(new)
+    length = int(json.loads((trained / "config.json").read_text())["length"])
+    ends, runs = new.column("end_step").to_pylist(), new.column("run").to_pylist()
+    touched = np.array([r == run and any(e - k in changed_steps for k in range(length))
+                        for r, e in zip(runs, ends, strict=True)])
+    assert 0 < touched.sum() < len(touched)
+    np.testing.assert_allclose(b[~touched], a[~touched], atol=1e-5)
+    assert np.all(np.abs(b[touched] - a[touched]).max(axis=1) > 1e-3)
+    for name in ("weights.safetensors", "whitening.npz"):
+        assert (out / name).read_bytes() == (trained / name).read_bytes()
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["epochs"] == 0 and m["kept_model"] == str(trained) and "length_3" in m["recall"]
+    # From the CLI: a directory that is not a sequence model is refused, nothing written
+    res = CliRunner().invoke(app, ["train-sequence", str(fr), "--keep-model", str(fr), "--out", str(tmp_path / "x"),
+                                   "--config", "ci", *[a for s in FAST for a in ("--set", s)]])
+    assert res.exit_code == 1 and "not a `siteloc train-sequence` output" in res.output
+    assert "Traceback" not in res.output and not (tmp_path / "x").exists()
