@@ -73,10 +73,7 @@ def run_prior_append(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: di
     prior = AreaPrior.load(src)
     meta, raw, rep = read_layers(Path(inputs["features"]))
     feats = Path(inputs["features"])
-    if rep["encoder"] != prior.encoder:
-        raise InputError(f"{feats}: encoded otherwise than the prior", [Problem(
-            str(feats / "report.json"), f"encoder {rep['encoder']}, the prior's {prior.encoder}",
-            fix="run `siteloc prior features` with the config the prior was built with")])
+    _require_same_encoder(prior, rep, feats)
     keep = np.ones(len(meta["image_id"]), bool) if not rooms else np.isin(meta["room"], rooms)
     if not keep.any():
         raise InputError(f"{feats}: nothing to append", [Problem(
@@ -105,6 +102,14 @@ def run_prior_append(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: di
             shutil.copyfile(src / "config.yaml", tmp / "build_config.yaml")
         write_effective_config(cfg, tmp, stage="prior-append", inputs=inputs)
     return out
+
+
+def _require_same_encoder(prior, report: dict, feats: Path) -> None:
+    """Features can join a prior only when encoded as its own images were."""
+    if report["encoder"] != prior.encoder:
+        raise InputError(f"{feats}: encoded otherwise than the prior", [Problem(
+            str(feats / "report.json"), f"encoder {report['encoder']}, the prior's {prior.encoder}",
+            fix="run `siteloc prior features` with the config the prior was built with")])
 
 
 def _feature_hashes(features: Path) -> dict[str, str]:
@@ -156,10 +161,7 @@ def run_prior_update(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: di
     prior = AreaPrior.load(src)
     old_sha = _prior_hashes(src)
     meta, raw, rep = read_layers(feats)
-    if rep["encoder"] != prior.encoder:
-        raise InputError(f"{feats}: encoded otherwise than the prior", [Problem(
-            str(feats / "report.json"), f"encoder {rep['encoder']}, the prior's {prior.encoder}",
-            fix="run `siteloc prior features` with the config the prior was built with")])
+    _require_same_encoder(prior, rep, feats)
     new_sha = _feature_hashes(feats)
     if not new_sha:
         raise InputError(f"{feats}: no image hashes", [Problem(
