@@ -69,15 +69,18 @@ def main() -> None:
     def fmt(v, f="{:.3f}"):
         return "-" if v is None else f.format(v)
 
-    print("\n| log | mode | converged | median conv. step | median error (m) | kidnaps recovered | "
-          "median recovery steps | ms / update |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("\n| log | mode | converged | lost track | median conv. step | within 0.5 m after conv. | "
+          "median error after conv. (m) | median error, all steps (m) | kidnaps recovered | median recovery steps "
+          "| ms / update |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for log, mode, s, _ in rows:
         kid = f"{s['recovered']}/{s['kidnaps']}" if s["kidnaps"] else "-"
-        print(f"| {log.removesuffix('-corrected')} | {mode} | {s['converged']}/{s['trials']} | "
-              f"{fmt(s['converged_step_median'], '{:.0f}')} | {fmt(s['error_median_m'])} | {kid} | "
+        lost = f"{s['lost_track']} (" + "; ".join(",".join(map(str, x)) for x in s["lost_track_steps"] if x) + ")" \
+            if s["lost_track"] else "0"
+        print(f"| {log.removesuffix('-corrected')} | {mode} | {s['converged']}/{s['trials']} | {lost} | "
+              f"{fmt(s['converged_step_median'], '{:.0f}')} | {fmt(s['within_threshold_share_median'], '{:.0%}')} | "
+              f"{fmt(s['error_median_m'])} | {fmt(s['error_median_all_m'])} | {kid} | "
               f"{fmt(s['recovery_steps_median'], '{:.0f}')} | {fmt(s['update_ms_mean'], '{:.1f}')} |")
-
 
 if __name__ == "__main__":
     main()

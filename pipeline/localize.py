@@ -222,6 +222,8 @@ def run_localize(
 
 
 def _summary(per_run: dict[str, list[dict]]) -> dict:
+    """Per run over its trials. `converged` counts the trials that converged and never lost track (a
+    filter that converges and then walks away is counted in `lost_track`, with its steps per trial)."""
     out = {}
     for name, trials in per_run.items():
         if "converged_step" not in trials[0]:
@@ -230,12 +232,20 @@ def _summary(per_run: dict[str, list[dict]]) -> dict:
         conv = [t["converged_step"] for t in trials if t["converged_step"] is not None]
         rec = [r for t in trials for r in t["recovery_steps"]]
         ok = [r for r in rec if r is not None]
-        med = [t["error_median_m"] for t in trials if t["error_median_m"] is not None]
+
+        def median(key):
+            v = [t[key] for t in trials if t[key] is not None]
+            return float(np.median(v)) if v else None
+
         out[name] = {
             "trials": len(trials),
-            "converged": len(conv),
+            "converged": sum(t["held"] for t in trials),
+            "lost_track": sum(bool(t["lost_track_steps"]) for t in trials),
+            "lost_track_steps": [t["lost_track_steps"] for t in trials],
             "converged_step_median": float(np.median(conv)) if conv else None,
-            "error_median_m": float(np.median(med)) if med else None,
+            "within_threshold_share_median": median("within_threshold_share"),
+            "error_median_m": median("error_median_m"),
+            "error_median_all_m": median("error_median_all_m"),
             "kidnaps": len(rec),
             "recovered": len(ok),
             "recovery_steps_median": float(np.median(ok)) if ok else None,

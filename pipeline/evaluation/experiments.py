@@ -233,7 +233,7 @@ def run_experiments(loc, data: Path, runs: list, *, trials: int, threshold_m: fl
 
 
 def summarise(replays: list[Replay]) -> dict:
-    """One method over its replays: convergence, accuracy, kidnap recovery, particles, time."""
+    """One method over its replays: convergence (held, or lost track), accuracy, kidnap recovery, particles, time."""
     conv = [r.metrics["converged_step"] for r in replays if r.metrics["converged_step"] is not None]
     rec = [s for r in replays for s in r.metrics["recovery_steps"]]
     ok = [s for s in rec if s is not None]
@@ -242,17 +242,20 @@ def summarise(replays: list[Replay]) -> dict:
     good = [r.metrics["error_mean_m"] for r in replays if r.metrics["error_mean_m"] is not None]
     med = [r.metrics["error_median_m"] for r in replays if r.metrics["error_median_m"] is not None]
     ms = [r.metrics["update_ms_mean"] for r in replays if r.metrics["update_ms_mean"] is not None]
+    share = [r.metrics["within_threshold_share"] for r in replays if r.metrics["within_threshold_share"] is not None]
 
     def rnd(v, n=4):
         return None if v is None else round(float(v), n)
 
     return {
         "replays": len(replays),
-        "converged": len(conv),
+        "converged": sum(r.metrics["held"] for r in replays),  # and never lost track afterwards
+        "lost_track": sum(bool(r.metrics["lost_track_steps"]) for r in replays),
         "converged_step_median": rnd(np.median(conv)) if conv else None,
         "error_p90_global_m": rnd(np.percentile(global_err, 90)),
         "error_p90_all_m": rnd(np.percentile(all_err, 90)),
         "error_median_all_m": rnd(np.median(all_err)),
+        "within_threshold_share_median": rnd(np.median(share)) if share else None,
         "error_mean_converged_m": rnd(np.mean(good)) if good else None,
         "error_median_converged_m": rnd(np.median(med)) if med else None,
         "kidnaps": len(rec),

@@ -41,3 +41,37 @@ def test_final_error_of_a_late_kidnapping_counts_only_steps_after_its_recovery()
     m = replay_metrics(err, [20], np.ones(26), np.zeros(26), np.ones(26, bool), threshold_m=0.5, hold=10)
     assert m["recovery_steps"] == [4]
     assert m["recovery_final_error_m"] == [0.05]
+
+
+def test_a_filter_that_converges_then_walks_away_has_lost_track():
+    # Converged at step 0, error grows linearly from step 30 (a filter drifting off), never comes back.
+    err = np.r_[np.full(30, 0.1), 0.1 + 0.05 * np.arange(1, 71)]
+    m = replay_metrics(err, [], np.ones(100), np.zeros(100), np.ones(100, bool), threshold_m=0.5, hold=10)
+    first_bad = int(np.argmax(err >= 0.5))  # 0.1 + 0.05 * 8 = 0.5 at index 37
+    assert m["converged_step"] == 0 and m["lost_track_steps"] == [first_bad] == [37]
+    assert m["regained_steps"] == [None] and m["held"] is False
+    assert m["within_threshold_share"] == round(first_bad / 100, 4)
+    assert m["error_median_all_m"] == round(float(np.median(err)), 4)
+    assert m["error_median_m"] == m["error_median_all_m"]  # converged at 0: the same steps
+
+
+def test_lost_then_regained_and_short_excursions():
+    # 20 good, 3 bad (too short to count), 20 good, 15 bad (lost), 12 good (regained), then lost to the end (5).
+    err = np.r_[np.full(20, 0.1), np.full(3, 2.0), np.full(20, 0.1), np.full(15, 3.0), np.full(12, 0.1),
+                np.full(5, 4.0)]
+    m = replay_metrics(err, [], np.ones(75), np.zeros(75), np.ones(75, bool), threshold_m=0.5, hold=10)
+    assert m["lost_track_steps"] == [43, 70] and m["regained_steps"] == [58, None] and not m["held"]
+    held = replay_metrics(err[:43], [], np.ones(43), np.zeros(43), np.ones(43, bool), threshold_m=0.5, hold=10)
+    assert held["lost_track_steps"] == [] and held["held"] is True
+
+
+def test_a_kidnapping_is_not_losing_track():
+    # Kidnapped at 30 and recovered at 40: the search is the kidnapping's, not a divergence. A divergence
+    # after the recovery is one.
+    err = np.r_[np.full(30, 0.1), np.full(10, 6.0), np.full(20, 0.1), np.full(12, 1.0)]
+    m = replay_metrics(err, [30], np.ones(72), np.zeros(72), np.ones(72, bool), threshold_m=0.5, hold=10)
+    assert m["recovery_steps"] == [10] and m["lost_track_steps"] == [60] and m["regained_steps"] == [None]
+    # Tracked steps: 0..29 and 40..71 (62), of which 50 within the threshold.
+    assert m["within_threshold_share"] == round(50 / 62, 4)
+    never = replay_metrics(np.full(30, 3.0), [], np.ones(30), np.zeros(30), np.ones(30, bool))
+    assert never["lost_track_steps"] == [] and never["held"] is False and never["within_threshold_share"] is None

@@ -13,11 +13,13 @@ from pipeline.evaluation.experiments import CachedRetrieval, Replay, summarise
 from pipeline.evaluation.report_figures import recovery_curves
 
 
-def _replay(errors, kidnaps=(), particles=None, converged=0, recovery=(), mean=0.1, median=0.05):
+def _replay(errors, kidnaps=(), particles=None, converged=0, recovery=(), mean=0.1, median=0.05, lost=(),
+            share=1.0):
     e = np.asarray(errors, float)
     return Replay("r", 0, np.zeros((len(e), 3)), np.zeros((len(e), 3)), e,
                   np.asarray(particles if particles is not None else np.full(len(e), 100)), list(kidnaps),
-                  {"converged_step": converged, "recovery_steps": list(recovery),
+                  {"converged_step": converged, "recovery_steps": list(recovery), "lost_track_steps": list(lost),
+                   "held": converged is not None and not lost, "within_threshold_share": share,
                    "error_mean_m": mean, "error_median_m": median, "update_ms_mean": 2.0})
 
 
@@ -35,9 +37,16 @@ def test_recovery_curves_align_each_kidnapping_and_stop_at_the_next():
 
 def test_summary_counts_against_hand_computed_values():
     a = _replay([5.0, 0.1, 0.1, 0.1], kidnaps=[2], converged=1, recovery=[3], mean=0.1)
-    b = _replay([9.0, 9.0, 0.2, 0.2], kidnaps=[1, 3], converged=None, recovery=[20, None], mean=None, median=None)
+    b = _replay([9.0, 9.0, 0.2, 0.2], kidnaps=[1, 3], converged=None, recovery=[20, None], mean=None, median=None,
+                 share=None)
     s = summarise([a, b])
     assert (s["replays"], s["converged"], s["converged_step_median"]) == (2, 1, 1.0)
+    assert s["lost_track"] == 0 and s["within_threshold_share_median"] == 1.0
+    # A third replay converged at step 0 and lost track at step 2: it converged, but is not counted as converged.
+    c = _replay([0.1, 0.1, 3.0, 3.0], converged=0, lost=[2], share=0.5)
+    s3 = summarise([a, b, c])
+    assert (s3["converged"], s3["lost_track"], s3["converged_step_median"]) == (1, 1, 0.5)
+    assert s3["within_threshold_share_median"] == 0.75
     assert s["kidnaps"] == 3 and s["recovered"] == 2 and s["recovery_steps_median"] == 11.5
     assert s["recovery_steps_max"] == 20 and s["recovered_within_15"] == 1 and s["recovered_within_40"] == 2
     assert s["error_p90_all_m"] == pytest.approx(np.percentile([5, .1, .1, .1, 9, 9, .2, .2], 90))
