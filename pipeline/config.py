@@ -85,6 +85,8 @@ class LaserLogConfig(Strict):
 
 class IngestLogConfig(Strict):
     seed: int = 0
+    scan_every_m: float = Field(0.0, ge=0, description="keep one scan per this much travel in the runs table "
+                                "(0: every scan); the map is built from every scan either way")
     laser: LaserLogConfig = LaserLogConfig()
     odometry_noise: OdometryNoise = OdometryNoise()
     mapping: MappingConfig = MappingConfig()

@@ -57,6 +57,29 @@ def _runs_table(run: str, log: CarmenLog, odom: np.ndarray):
     return to_table("runs", columns)
 
 
+def every_metre(poses: np.ndarray, step_m: float) -> np.ndarray:
+    """Indices of the scans kept when one is kept per `step_m` of travel: the first, then each one at least
+    `step_m` (path length along the ground truth) past the last kept one. `step_m` 0 keeps every scan."""
+    if step_m <= 0 or len(poses) == 0:
+        return np.arange(len(poses))
+    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
+    keep, last = [0], 0.0
+    for i in range(1, len(poses)):
+        if travelled[i] - last >= step_m:
+            keep.append(i)
+            last = travelled[i]
+    return np.asarray(keep)
+
+
+def subsample(log: CarmenLog, keep: np.ndarray) -> CarmenLog:
+    """The log with only the scans `keep` (the replayed run of a robot scanning less often)."""
+    from dataclasses import replace
+
+    return replace(log, t=log.t[keep], poses=log.poses[keep], ranges=log.ranges[keep],
+                   line_numbers=log.line_numbers[keep],
+                   no_return_count=int((log.ranges[keep] >= log.range_max).sum()))
+
+
 def _r(value: float, digits: int = 4) -> float:
     return round(float(value), digits)
 
@@ -109,7 +132,9 @@ def build_report(
 def report_markdown(report: dict) -> str:
     rows = [
         ("source", report["source"]),
-        ("scans x beams", f"{report['scans']} x {report['beams']}"),
+        ("scans x beams", f"{report['scans']} x {report['beams']}"
+         + (f" (one per {report['scan_every_m']:g} m of the log's {report['scans_in_log']})"
+            if report.get("scan_every_m") else "")),
         ("beam angles", f"{report['angle_min_deg']:g} deg + i * {report['angle_increment_deg']:g} deg"),
         (
             "no-return readings",
@@ -172,7 +197,8 @@ def run_ingest_log(
     section = cfg.ingest_log
     run = run_name(log_path)
     with atomic_dir(out, force=force) as tmp:
-        log = read_carmen(log_path, section.laser, skip_bad_lines=skip_bad_lines)
+        full = read_carmen(log_path, section.laser, skip_bad_lines=skip_bad_lines)
+        log = subsample(full, every_metre(full.poses, section.scan_every_m))
         odom = synthesise_odometry(log.poses, section.odometry_noise, section.seed)
         (tmp / "runs").mkdir()
         write_table(
@@ -188,7 +214,8 @@ def run_ingest_log(
             },
         )
         geometry = (log.angle_min, log.angle_increment, log.range_max)
-        occ_map = build_occupancy_map(log.poses, log.ranges, *geometry, section.mapping, progress=progress)
+        # The map a mapping team would have: from every scan, however sparsely the runs table keeps them.
+        occ_map = build_occupancy_map(full.poses, full.ranges, *geometry, section.mapping, progress=progress)
         write_map(tmp / "map.yaml", occ_map)
         shares = tuple(
             endpoint_occupied_share(
@@ -197,6 +224,8 @@ def run_ingest_log(
             for tol in (0, 1)
         )
         report = build_report(run, log, odom, occ_map, shares, cfg)
+        report["scans_in_log"] = full.n_scans
+        report["scan_every_m"] = section.scan_every_m
         write_text_atomic(tmp / "report.json", json.dumps(report, indent=2) + "\n")
         write_text_atomic(tmp / "report.md", report_markdown(report))
         title = (

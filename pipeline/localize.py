@@ -9,8 +9,9 @@ step while the filter is lost), or `retrieval`: the thin runtime of a deployable
 and the Top-4 of the current image are injected while it is lost. `kidnap_at` adds kidnappings by
 teleporting (`evaluation.replay.teleport`); runs that already flag kidnappings keep theirs.
 
-Writes `estimates.parquet` (per step), `metrics.json` (per run and trial, and a summary), figures in
-`plots/` and `config.yaml`.
+Writes `estimates.parquet` (per step), `metrics.json` (per run and trial, and a summary, with evo's APE
+and RPE beside our own figures), the estimates and ground truth as TUM files in `trajectories/` (for
+`evo_ape` / `evo_rpe`), figures in `plots/` and `config.yaml`.
 """
 
 from __future__ import annotations
@@ -148,6 +149,7 @@ def run_localize(
     from pipeline.evaluation import plots
     from pipeline.evaluation.metrics import replay_metrics
     from pipeline.evaluation.replay import load_run, teleport
+    from pipeline.evaluation.trajectories import evo_metrics, step_stamps, write_tum
     from pipeline.progress import progress_bar
     from pipeline.runtime.grid import LaserMap
     from pipeline.runtime.motion import wrap_angle
@@ -185,10 +187,16 @@ def run_localize(
                    else replay_one(run, lmap, cfg.filter, mount, init, trial))
             pose = rep["pose"]
             kid = np.nonzero(run.kidnapped)[0].tolist()
+            stamps = step_stamps(run.t, len(run))
+            write_tum(tmp / "trajectories" / f"{run.name}_trial{trial}.tum", pose, stamps)
             if run.gt is not None:
                 err = np.hypot(*(pose[:, :2] - run.gt[:, :2]).T)
                 err_t = np.abs(wrap_angle(pose[:, 2] - run.gt[:, 2]))
                 m = replay_metrics(err, [k for k in kid if k > 0], rep["particles"], rep["ms"], rep["updated"])
+                m["evo"] = evo_metrics(pose, run.gt, stamps)
+                if trial == 0 or kidnap_at:  # teleported runs differ by trial
+                    name = f"{run.name}_groundtruth" + (f"_trial{trial}" if kidnap_at else "")
+                    write_tum(tmp / "trajectories" / f"{name}.tum", run.gt, stamps)
             else:
                 err = err_t = np.full(len(run), np.nan)
                 ms = rep["ms"][rep["updated"]]
@@ -233,9 +241,12 @@ def _summary(per_run: dict[str, list[dict]]) -> dict:
         rec = [r for t in trials for r in t["recovery_steps"]]
         ok = [r for r in rec if r is not None]
 
-        def median(key):
-            v = [t[key] for t in trials if t[key] is not None]
+        def median_of(get, trials=trials):
+            v = [x for trial in trials if (x := get(trial)) is not None]
             return float(np.median(v)) if v else None
+
+        def median(key):
+            return median_of(lambda trial: trial[key])
 
         out[name] = {
             "trials": len(trials),
@@ -249,6 +260,8 @@ def _summary(per_run: dict[str, list[dict]]) -> dict:
             "kidnaps": len(rec),
             "recovered": len(ok),
             "recovery_steps_median": float(np.median(ok)) if ok else None,
+            "ape_rmse_m_median": median_of(lambda t: (t["evo"]["ape_m"] or {}).get("rmse")),
+            "rpe_rmse_m_median": median_of(lambda t: (t["evo"]["rpe_m"] or {}).get("rmse")),
             "update_ms_mean": float(np.mean(ms)) if (ms := [t["update_ms_mean"] for t in trials
                                                             if t["update_ms_mean"] is not None]) else None,
         }

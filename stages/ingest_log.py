@@ -33,6 +33,9 @@ The odometry is synthesised from the ground truth with the motion-model noise in
 and seed ingest_log.seed, so the same inputs give identical outputs. A malformed line stops the
 command, naming its line number; --skip-bad-lines skips and counts such lines instead.
 
+--every-m 1.0 keeps one scan per metre of travel in the runs table (a robot that scans less often, or
+moves fast: the hard case for a particle filter); the map is still built from every scan.
+
 Example: siteloc ingest-log ../shared/data/carmen/intel-corrected.log.gz --out data/intel/ingested
 """
 
@@ -59,6 +62,9 @@ def ingest_log(
     config: ConfigOpt = "demo",
     set_: set_opt("ingest_log.mapping.resolution=0.1") = None,
     skip_bad_lines: SkipOpt = False,
+    every_m: Annotated[float | None, typer.Option(
+        "--every-m", min=0.0, help="Keep one scan per this many metres travelled (ingest_log.scan_every_m; "
+        "0: every scan).", show_default=False)] = None,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
@@ -68,6 +74,8 @@ def ingest_log(
         from pipeline.ingest_log import run_ingest_log
 
         cfg = load(config, set_)
+        if every_m is not None:
+            cfg = cfg.model_copy(update={"ingest_log": cfg.ingest_log.model_copy(update={"scan_every_m": every_m})})
         result = run_ingest_log(
             cfg,
             inputs={"log": log},

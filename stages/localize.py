@@ -36,10 +36,11 @@ particles, sensor model (likelihood_field or beam), kidnap rule. Override them w
 Writes into --out: estimates.parquet (per step: pose, covariance, state, particles, error), metrics.json
 (converged step, the steps where it lost track, share of steps within 0.5 m after convergence, median /
 mean / p90 error after convergence and median over all steps, recovery steps per kidnapping, particles,
-ms per update; a summary over trials), plots/ (error and particles per step, the trajectory and particles
-on the map, error CDF) and config.yaml. A trial counts as converged when the error settled under 0.5 m
-for 10 steps and never afterwards stayed at 0.5 m or more for 10 steps (kidnappings aside); one that
-did is reported as "lost track at" that step.
+ms per update, evo's APE / RPE; a summary over trials), trajectories/ (estimates and ground truth as TUM
+files, for `evo_ape tum trajectories/RUN_groundtruth.tum trajectories/RUN_trial0.tum`), plots/ (error
+and particles per step, the trajectory and particles on the map, error CDF) and config.yaml. A trial
+counts as converged when the error settled under 0.5 m for 10 steps and never afterwards stayed at
+0.5 m or more for 10 steps (kidnappings aside); one that did is reported as "lost track at" that step.
 
 --bag replays one ROS recording (ROS 1 .bag, ROS 2 folder, .mcap / .db3) as the robot would feed the runtime:
 a step per scan with the odometry and, as ground truth when tf has it, map -> base_link at the scan's
@@ -124,11 +125,11 @@ def localize(
                       caption="converged: settled within 0.5 m and never lost track afterwards; lost track: "
                               "settled, then 0.5 m or more for 10 steps (kidnappings aside)")
         for col in ("run", "converged", "lost track at", "conv. step", "within 0.5 m", "median err (m)",
-                    "median err, all (m)", "kidnaps recovered", "recovery steps", "ms/update"):
+                    "median err, all (m)", "APE rmse, evo (m)", "kidnaps recovered", "recovery steps", "ms/update"):
             table.add_column(col)
         for name, s in doc["summary"].items():
             if "converged" not in s:
-                table.add_row(name, *["-"] * 9)
+                table.add_row(name, *["-"] * 10)
                 continue
 
             def f(v, fmt="{:.3f}"):
@@ -137,7 +138,7 @@ def localize(
             lost = "; ".join(", ".join(map(str, steps)) for steps in s["lost_track_steps"] if steps) or "-"
             table.add_row(name, f"{s['converged']}/{s['trials']}", lost, f(s["converged_step_median"], "{:.0f}"),
                           f(s["within_threshold_share_median"], "{:.0%}"), f(s["error_median_m"]),
-                          f(s["error_median_all_m"]), f"{s['recovered']}/{s['kidnaps']}",
+                          f(s["error_median_all_m"]), f(s["ape_rmse_m_median"]), f"{s['recovered']}/{s['kidnaps']}",
                           f(s["recovery_steps_median"], "{:.0f}"), f(s["update_ms_mean"], "{:.1f}"))
         Console(width=max(Console().width, 120)).print(table)
         echo_path("output", result)

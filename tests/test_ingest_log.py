@@ -79,6 +79,33 @@ def test_cli_writes_every_output(tmp_path, room_log):
     assert config["stage"] == "ingest-log" and config["inputs"] == {"log": str(room_log)}
 
 
+def test_every_m_keeps_one_scan_per_metre_and_maps_from_all(tmp_path, room_log):
+    from pipeline.ingest_log import every_metre
+
+    poses = room_poses(30)
+    keep = every_metre(poses, 1.0)
+    # Brute-force twin: walk the path, keep a scan once 1 m has been travelled since the last kept one.
+    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
+    twin, last = [0], 0.0
+    for i, d in enumerate(travelled):
+        if d - last >= 1.0:
+            twin.append(i)
+            last = d
+    assert keep.tolist() == twin and 1 < len(twin) < 30
+    assert every_metre(poses, 0.0).tolist() == list(range(30))
+
+    full, sparse = tmp_path / "full", tmp_path / "sparse"
+    assert _invoke(str(room_log), "--out", str(full)).exit_code == 0
+    res = _invoke(str(room_log), "--out", str(sparse), "--every-m", "1")
+    assert res.exit_code == 0, res.output
+    cols = read_table(sparse / "runs" / "room.parquet", "runs").to_pydict()
+    np.testing.assert_allclose(np.column_stack([cols["gt_x"], cols["gt_y"]]), poses[twin, :2], atol=1e-6)
+    assert cols["step"] == list(range(len(twin)))
+    assert (sparse / "map.pgm").read_bytes() == (full / "map.pgm").read_bytes()  # the map: every scan
+    report = json.loads((sparse / "report.json").read_text())
+    assert report["scans"] == len(twin) and report["scans_in_log"] == 30 and report["scan_every_m"] == 1.0
+
+
 def test_outputs_are_deterministic(tmp_path, room_log):
     cfg = load_config("ci")
     a = run_ingest_log(cfg, inputs={"log": room_log}, outputs={"out": tmp_path / "a"}, progress=False)

@@ -41,6 +41,20 @@ def test_tracking_replay_writes_estimates_metrics_and_plots(dataset, tmp_path):
     for png in ("room-corrected_error.png", "room-corrected_map.png", "error_cdf.png"):
         assert (out / "plots" / png).stat().st_size > 1000
     assert (out / "config.yaml").is_file() and "converged" in res.output
+    # The TUM files hold the estimates and the truth; evo's APE on them is the metrics' APE.
+    from evo.core import metrics as evo_metrics
+    from evo.tools.file_interface import read_tum_trajectory_file
+
+    trial1 = np.array(est["trial"]) == 1
+    mine = read_tum_trajectory_file(out / "trajectories" / "room-corrected_trial1.tum")
+    truth = read_tum_trajectory_file(out / "trajectories" / "room-corrected_groundtruth.tum")
+    np.testing.assert_allclose(mine.positions_xyz[:, 0], np.array(est["x"])[trial1])
+    np.testing.assert_allclose(truth.positions_xyz[:, 1], np.array(est["gt_y"])[trial1])
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((truth, mine))
+    assert m["runs"]["room-corrected"][1]["evo"]["ape_m"]["rmse"] == pytest.approx(ape.get_statistic(
+        evo_metrics.StatisticsType.rmse), abs=1e-4)
+    assert m["runs"]["room-corrected"][1]["evo"]["ape_m"]["median"] == pytest.approx(np.median(err[trial1]), abs=1e-4)
 
 
 def test_bad_options_fail_clearly(dataset, tmp_path):

@@ -134,6 +134,7 @@ def check_same_map(bundle_map, data: Path) -> None:
 
 def _replay(run, trial: int, rep: dict, threshold_m: float, hold: int) -> Replay:
     from pipeline.evaluation.metrics import replay_metrics
+    from pipeline.evaluation.trajectories import evo_metrics, step_stamps
 
     err = np.hypot(*(rep["pose"][:, :2] - run.gt[:, :2]).T)
     kid = [int(k) for k in np.nonzero(run.kidnapped)[0] if k > 0]
@@ -141,6 +142,7 @@ def _replay(run, trial: int, rep: dict, threshold_m: float, hold: int) -> Replay
     replay = Replay(run.name, trial, rep["pose"], run.gt, err, np.asarray(rep["particles"]), kid, m, rep)
     m["error_p90_all_m"] = round(float(np.percentile(err, 90)), 4)
     m["error_p90_global_m"] = round(float(np.percentile(replay.global_errors, 90)), 4)
+    m["evo"] = evo_metrics(rep["pose"], run.gt, step_stamps(run.t, len(run)))
     return replay
 
 
@@ -256,6 +258,8 @@ def summarise(replays: list[Replay]) -> dict:
         "error_p90_all_m": rnd(np.percentile(all_err, 90)),
         "error_median_all_m": rnd(np.median(all_err)),
         "within_threshold_share_median": rnd(np.median(share)) if share else None,
+        "ape_rmse_m_median": rnd(np.median(ape)) if (ape := [r.metrics["evo"]["ape_m"]["rmse"] for r in replays
+                                                            if r.metrics.get("evo", {}).get("ape_m")]) else None,
         "error_mean_converged_m": rnd(np.mean(good)) if good else None,
         "error_median_converged_m": rnd(np.median(med)) if med else None,
         "kidnaps": len(rec),

@@ -33,6 +33,7 @@ class ReplayRun:
     range_max: float
     kidnapped: np.ndarray  # (T,) bool
     image_ids: tuple[str | None, ...] | None = None  # the camera frame of each step, relative to the dataset
+    t: np.ndarray | None = None  # (T,) the scans' stamps, s (TUM trajectory files)
 
     def __len__(self) -> int:
         return len(self.odom)
@@ -62,6 +63,7 @@ def load_run(path: Path) -> ReplayRun:
         range_max=float(cols["range_max"][0]),
         kidnapped=kidnapped,
         image_ids=tuple(cols["image_id"]) if "image_id" in cols else None,
+        t=np.asarray(cols["t"], dtype=np.float64),
     )
 
 

@@ -3,7 +3,8 @@
 Inputs: a deployable bundle (`siteloc export`) and the ingested site whose query runs it is measured on.
 Outputs in `reports/<site>/`: report.md (Table 1, the summary beside the paper's figures, Figures
 8-12), metrics.json (every replay's metrics and each method's summary), estimates/<method>.parquet
-(per step, the `estimates` table of `siteloc localize`), fig8..fig12 PNGs, config.yaml, and for DVC
+(per step, the `estimates` table of `siteloc localize`), trajectories/ (TUM files of every replay and the
+ground truth, for evo; metrics.json carries evo's APE / RPE), fig8..fig12 PNGs, config.yaml, and for DVC
 (`pipeline.io.tracked`, see `write_tracked`) headline.json (per method: p90 global error, mean error
 once converged, kidnappings and recoveries), plots/error_cdf.csv (Figure 8's error CDF of every method)
 and plots/recovery_steps.csv (steps to recover from each kidnapping, per method).
@@ -20,6 +21,7 @@ import numpy as np
 
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.evaluation.experiments import METHODS, Replay, check_same_map, query_runs, run_experiments, summarise
+from pipeline.evaluation.trajectories import step_stamps, write_tum
 from pipeline.runtime.motion import wrap_angle
 
 # Seed 000, section 4.3-4.4: what the paper reports for its floor.
@@ -262,6 +264,10 @@ def run_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[s
         for m, reps in results.items():
             rows: dict[str, list] = {f.name: [] for f in tables.ESTIMATES}
             for r in reps:
+                stamps = step_stamps(by_name[r.run].t, len(r.pose))
+                write_tum(tmp / "trajectories" / m / f"{r.run}_trial{r.trial}.tum", r.pose, stamps)
+                if not (tmp / "trajectories" / f"{r.run}_groundtruth.tum").exists():
+                    write_tum(tmp / "trajectories" / f"{r.run}_groundtruth.tum", r.gt, stamps)
                 err_t = np.abs(wrap_angle(r.pose[:, 2] - r.gt[:, 2]))
                 for k, v in estimate_columns(by_name[r.run], r.trial, r.rep, r.errors, err_t).items():
                     rows[k].extend(list(v))

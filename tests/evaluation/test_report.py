@@ -120,6 +120,14 @@ def test_summary_figures_recompute_from_the_estimates_tables(report):
         before = np.array([s_ < first[q] for s_, q in zip(step, replay, strict=True)])
         assert doc["summary"][m]["error_p90_global_m"] == pytest.approx(np.percentile(err[before], 90), abs=1e-4)
         assert doc["summary"][m]["particles_mean"] == pytest.approx(np.mean(t["particles"]), abs=0.1)
+        # Each replay's TUM file is its estimates, and evo's APE of it is in the metrics.
+        from evo.tools.file_interface import read_tum_trajectory_file
+
+        rep0 = doc["replays"][m][0]
+        sel = (np.asarray(t["run"]) == rep0["run"]) & (np.asarray(t["trial"]) == rep0["trial"])
+        tum = read_tum_trajectory_file(out / "trajectories" / m / f"{rep0['run']}_trial{rep0['trial']}.tum")
+        np.testing.assert_allclose(tum.positions_xyz[:, 1], np.asarray(t["y"])[sel])
+        assert rep0["evo"]["ape_m"]["rmse"] == pytest.approx(np.sqrt(np.mean(err[sel] ** 2)), abs=1e-4)
     mcl = tables.read_table(out / "estimates" / "mcl.parquet", "estimates").column("particles").to_numpy()
     cfg = report[0]
     assert (mcl == cfg.filter.max_particles).all()  # fixed-count MCL never adapts
