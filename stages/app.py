@@ -21,6 +21,7 @@ from stages import (
     retrieval,
     sequence,
     synth,
+    synth_laser,
     train_detector,
     update,
 )
@@ -48,6 +49,7 @@ app.command("ingest-colmap", help=help_text(colmap.INGEST_HELP))(colmap.ingest_c
 app.command("export-colmap", help=help_text(colmap.EXPORT_HELP))(colmap.export_colmap)
 app.command("ingest-log", help=help_text(ingest_log.HELP))(ingest_log.ingest_log)
 app.command("synth", help=help_text(synth.HELP))(synth.synth)
+app.command("synth-laser", help=help_text(synth_laser.HELP))(synth_laser.synth_laser)
 app.command("train-detector", help=help_text(train_detector.HELP))(train_detector.train_detector)
 app.command("evaluate-detector", help=help_text(evaluate_detector.HELP))(evaluate_detector.evaluate_detector)
 app.command("train-place", help=help_text(retrieval.TRAIN_PLACE_HELP))(retrieval.train_place)

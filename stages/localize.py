@@ -140,5 +140,5 @@ def localize(
                           f(s["within_threshold_share_median"], "{:.0%}"), f(s["error_median_m"]),
                           f(s["error_median_all_m"]), f(s["ape_rmse_m_median"]), f"{s['recovered']}/{s['kidnaps']}",
                           f(s["recovery_steps_median"], "{:.0f}"), f(s["update_ms_mean"], "{:.1f}"))
-        Console(width=max(Console().width, 120)).print(table)
+        Console(width=max(Console().width, 150)).print(table)
         echo_path("output", result)

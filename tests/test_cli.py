@@ -150,6 +150,10 @@ def test_set_example_names_a_key_the_command_reads(argv):
         from pipeline.sitegen.presets import load_site_preset
 
         tree = load_site_preset("tiny", parse_overrides([example])).model_dump()
+    elif argv == ["synth-laser"]:  # a laser-only site preset
+        from pipeline.sitegen.synth_laser import load_laser_preset
+
+        tree = load_laser_preset("campus", parse_overrides([example])).model_dump()
     else:
         tree = load_config("demo", [example]).model_dump()
         section = SECTIONS.get(argv[0])

@@ -184,12 +184,17 @@ class SitePreset(Strict):
 
 def load_site_preset(name_or_path: str | Path, overrides: dict | None = None) -> SitePreset:
     """A preset by name (`configs/sites/<name>.yaml`) or path; unknown keys and bad values name the key."""
+    return load_preset(name_or_path, overrides, SitePreset, SITES_DIR)
+
+
+def load_preset(name_or_path: str | Path, overrides: dict | None, model: type, directory: Path):
+    """A preset of `model` by name (`directory/<name>.yaml`) or path, with dotted-key overrides."""
     path = Path(name_or_path)
     if not (path.suffix in (".yaml", ".yml") or path.exists()):
-        path = SITES_DIR / f"{name_or_path}.yaml"
+        path = directory / f"{name_or_path}.yaml"
         if not path.is_file():
-            known = ", ".join(sorted(p.stem for p in SITES_DIR.glob("*.yaml")))
-            raise ConfigError(f"unknown site preset '{name_or_path}' (presets in {SITES_DIR}: {known})")
+            known = ", ".join(sorted(p.stem for p in directory.glob("*.yaml")))
+            raise ConfigError(f"unknown site preset '{name_or_path}' (presets in {directory}: {known})")
     if not path.is_file():
         raise ConfigError(f"{path}: site preset not found")
     try:
@@ -206,6 +211,6 @@ def load_site_preset(name_or_path: str | Path, overrides: dict | None = None) ->
                 raise ConfigError(f"{path}: override '{key}': '{part}' is a value, not a section")
         node[parts[-1]] = value
     try:
-        return SitePreset.model_validate(raw)
+        return model.model_validate(raw)
     except ValidationError as err:
-        raise ConfigError(format_validation_error(str(path), err, SitePreset)) from None
+        raise ConfigError(format_validation_error(str(path), err, model)) from None
