@@ -82,5 +82,6 @@ def main() -> None:
               f"{fmt(s['error_median_m'])} | {fmt(s['error_median_all_m'])} | {kid} | "
               f"{fmt(s['recovery_steps_median'], '{:.0f}')} | {fmt(s['update_ms_mean'], '{:.1f}')} |")
 
+
 if __name__ == "__main__":
     main()

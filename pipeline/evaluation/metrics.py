@@ -46,13 +46,14 @@ def lost_track(errors: np.ndarray, tracked: np.ndarray, segment_end: np.ndarray,
     errors = np.asarray(errors, dtype=np.float64)
     n = len(errors)
     bad = _runs_of(tracked & (errors >= threshold_m))
+    starts = np.nonzero(tracked & (bad[:n] >= np.minimum(hold, segment_end - np.arange(n))))[0]
     out: list[tuple[int, int | None]] = []
     s = 0
     while s < n:
-        hits = [i for i in range(s, n) if tracked[i] and bad[i] >= min(hold, segment_end[i] - i)]
-        if not hits:
+        k = int(np.searchsorted(starts, s))
+        if k == len(starts):
             break
-        lost = hits[0]
+        lost = int(starts[k])
         back = first_settled(errors[: segment_end[lost]], lost, threshold_m, hold)
         out.append((lost, back))
         if back is None:  # lost to the end of the segment: a kidnapping after it starts afresh

@@ -261,13 +261,15 @@ def run_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[s
            "replays": {m: [{"run": r.run, "trial": r.trial, **r.metrics} for r in results[m]] for m in results}}
     by_name = {r.name: r for r in runs}
     with atomic_dir(out, force=force) as tmp:
+        truth_written: set[str] = set()
         for m, reps in results.items():
             rows: dict[str, list] = {f.name: [] for f in tables.ESTIMATES}
             for r in reps:
                 stamps = step_stamps(by_name[r.run].t, len(r.pose))
                 write_tum(tmp / "trajectories" / m / f"{r.run}_trial{r.trial}.tum", r.pose, stamps)
-                if not (tmp / "trajectories" / f"{r.run}_groundtruth.tum").exists():
+                if r.run not in truth_written:
                     write_tum(tmp / "trajectories" / f"{r.run}_groundtruth.tum", r.gt, stamps)
+                    truth_written.add(r.run)
                 err_t = np.abs(wrap_angle(r.pose[:, 2] - r.gt[:, 2]))
                 for k, v in estimate_columns(by_name[r.run], r.trial, r.rep, r.errors, err_t).items():
                     rows[k].extend(list(v))
