@@ -168,35 +168,45 @@ def bundles(args, cfg, w: Path, model: Path, ing1: Path, x1: Path, v2: Path, x_u
     print(f"v2 changelog: areas {log['areas_changed']}, stops {log['stops']}, map cells {log['map']['cells_changed']}"
           f", inputs {log['components']}")
     checks = {}
-    for name, b in (("v1", b1), ("v2", b2)):
-        out = timed(f"check {name} on the changed floor", t, run_check, cfg, inputs={"bundle": b, "data": ing_full},
-                    outputs={"out": w / f"check-{name}"}, localize=False, progress=False)
+    for name, b, data in (("v1 before", b1, ing1), ("v1", b1, ing_full), ("v2", b2, ing_full)):
+        floor = "the building before the change" if name == "v1 before" else "the changed floor"
+        out = timed(f"check {name.split()[0]} on {floor}", t, run_check, cfg, inputs={"bundle": b, "data": data},
+                    outputs={"out": w / f"check-{name.replace(' ', '-')}"}, localize=False, progress=False)
         checks[name] = json.loads((out / "report.json").read_text())
-        print(f"  {name}: " + " ".join(checks[name]["recommendation"]["text"]))
-    print("\n| area | v1 verdict | v1 recall@4 | v1 views like | v1 endpoints on walls | v1 m2 changed | "
-          "v2 verdict | v2 recall@4 | v2 views like |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+        print(f"  {name.split()[0]} on {floor}: " + " ".join(checks[name]["recommendation"]["text"]))
 
     def f(v, fmt="{:.2f}"):
         return "-" if v is None else fmt.format(v)
 
+    print("\n| bundle, floor | areas judged | re-capture | update map | m2 changed, largest area |\n"
+          "| --- | --- | --- | --- | --- |")
+    for name, doc in checks.items():
+        judged = [e for e in doc["areas"].values() if e["verdict"] != "too few data"]
+        largest = max(((e.get("map") or {}).get("changed_m2") or 0.0 for e in judged), default=0.0)
+        print(f"| {name} | {len(judged)} | {', '.join(doc['recommendation']['recapture']) or '-'} | "
+              f"{', '.join(doc['recommendation']['update_map']) or '-'} | {largest:.2f} |")
+    print("\n| area | v1 verdict | v1 recall@4 | v1 views changed | v1 endpoints on walls | v1 m2 changed | "
+          "v2 verdict | v2 recall@4 | v2 views changed |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for key in sorted(set(checks["v1"]["areas"]) | set(checks["v2"]["areas"])):
         a, b = checks["v1"]["areas"].get(key, {}), checks["v2"]["areas"].get(key, {})
         if a.get("verdict", "too few data") == "too few data" and b.get("verdict", "too few data") == "too few data":
             continue
         am, an = a.get("map") or {}, a.get("new") or {}
-        print(f"| {key} | {a.get('verdict')} | {f(an.get('recall_at_4'))} | {f(a.get('place_likeness'), '{:.0%}')} | "
-              f"{f(am.get('endpoint_share_on_walls'), '{:.0%}')} | {f(am.get('changed_m2'))} | {b.get('verdict')} | "
-              f"{f((b.get('new') or {}).get('recall_at_4'))} | {f(b.get('place_likeness'), '{:.0%}')} |")
+        print(f"| {key} | {a.get('verdict')} | {f(an.get('recall_at_4'))} | "
+              f"{f(a.get('changed_view_share'), '{:.0%}')} | {f(am.get('endpoint_share_on_walls'), '{:.0%}')} | "
+              f"{f(am.get('changed_m2'))} | {b.get('verdict')} | {f((b.get('new') or {}).get('recall_at_4'))} | "
+              f"{f(b.get('changed_view_share'), '{:.0%}')} |")
     ev = {}
     for label, b, data in (("v1, building before", b1, ing1), ("v1, changed building", b1, ing_full),
                            ("v2, changed building", b2, ing_full)):
         out = timed(f"evaluate {label}", t, run_evaluate, cfg, inputs={"bundle": b, "data": data},
                     outputs={"out": w / ("eval-" + label.replace(", ", "-").replace(" ", "_"))}, progress=False)
         ev[label] = json.loads((out / "metrics.json").read_text())["summary"]["proposed"]
-    print(f"\n| bundle, building ({args.trials} trials per run) | converged | median step | error p90 (m) | "
-          "median error converged (m) | kidnaps recovered (within 15) |\n| --- | --- | --- | --- | --- | --- |")
+    print(f"\n| bundle, building ({args.trials} trials per run) | converged and held | lost track | median step | "
+          "error p90 (m) | median error converged (m) | kidnaps recovered (within 15) |\n"
+          "| --- | --- | --- | --- | --- | --- | --- |")
     for label, s in ev.items():
-        print(f"| {label} | {s['converged']}/{s['replays']} | {s['converged_step_median']} | "
+        print(f"| {label} | {s['converged']}/{s['replays']} | {s['lost_track']} | {s['converged_step_median']} | "
               f"{s['error_p90_all_m']} | {s['error_median_converged_m']} | {s['recovered']}/{s['kidnaps']} "
               f"({s['recovered_within_15']}) |")
 

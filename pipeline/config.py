@@ -143,7 +143,6 @@ class SensorModelConfig(Strict):
     beam_skip_error_threshold: float = Field(0.9, gt=0, le=1, description="if this share of the beams would be "
                                              "skipped, the belief is wrong, not the beams: use them all (nav2: "
                                              "beam_skip_error_threshold)")
-
     @model_validator(mode="after")
     def _beam_skip_model(self) -> SensorModelConfig:
         if self.beam_skip and self.model != "likelihood_field" and "beam_skip" in self.model_fields_set:
@@ -479,9 +478,11 @@ class CheckConfig(Strict):
                                    "under the bundle's baseline (the area's own, else the whole site's)")
     same_place_m: float = Field(0.3, gt=0, description="a database view within this many metres ...")
     same_place_deg: float = Field(15.0, gt=0, le=180, description="... and degrees of a new image shows its place")
-    min_place_likeness: float = Field(0.8, ge=0, le=1, description="... or whose new views look like the bundle's "
-                                      "at the same place less than this: 1 unchanged, 0 no closer than a neighbouring "
-                                      "stop's view (the baseline's same-place similarity)")
+    min_place_likeness: float = Field(0.8, ge=0, le=1, description="a new view is changed when it looks like the "
+                                      "bundle's at the same place less than this: 1 unchanged, 0 no closer than a "
+                                      "neighbouring stop's view (the baseline's neighbour similarity)")
+    max_changed_views: float = Field(0.2, gt=0, le=1, description="... and an area is re-captured when more than "
+                                     "this share of its new same-place views changed")
     max_map_drop: float = Field(0.15, gt=0, le=1, description="retrain the detector when its mAP@0.5 on the new "
                                 "images falls this much under the baseline's")
     endpoint_tolerance_m: float = Field(0.1, ge=0, description="a scan endpoint within this of an occupied map "

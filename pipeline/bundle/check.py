@@ -4,7 +4,8 @@ Retrieval and detector figures of the new images (pipeline.bundle.measure) are s
 baseline (the same measure on its held-out stops at export); the new runs' scans, at their known poses,
 are set against the bundle's map: the share of scan endpoints on its occupied cells and the cells where
 the scans see an obstacle the map lacks or pass through a wall the map has (each beyond
-`check.endpoint_tolerance_m`, so wall edges are not counted as change). Each area gets a verdict and the
+`check.endpoint_tolerance_m`, so wall edges are not counted as change, and only where most runs that
+looked there found it: pipeline.update.map_patch.map_change). Each area gets a verdict and the
 report a plain recommendation: which areas to re-capture, whether the map needs updating, whether the
 detector needs retraining. Thresholds: `check.*` in the config.
 """
@@ -27,7 +28,7 @@ def map_drift(occ_map: OccupancyMap, owner: np.ndarray, names: list[str], runs: 
     plus the two (H, W) masks for the figure."""
     from scipy.ndimage import distance_transform_edt
 
-    from pipeline.update.map_patch import disagreement, fresh_map, scans_with_poses
+    from pipeline.update.map_patch import map_change, scans_with_poses
 
     c = cfg.check
     found = scans_with_poses(runs, base_from_laser)
@@ -49,9 +50,9 @@ def map_drift(occ_map: OccupancyMap, owner: np.ndarray, names: list[str], runs: 
     ep_owner = np.full(len(row), -1, dtype=np.int64)
     ep_owner[inside] = owner[row[inside], col[inside]]
 
-    fresh, _ = fresh_map(occ_map, runs, base_from_laser, cfg.update.mapping, progress=progress)
-    observed = (fresh == FREE) | (fresh == OCCUPIED)
-    new_obstacles, walls_gone = disagreement(occ_map, fresh, observed, c.endpoint_tolerance_m)
+    change = map_change(occ_map, runs, base_from_laser, cfg.update.mapping, c.endpoint_tolerance_m,
+                        progress=progress)
+    new_obstacles, walls_gone = change.new_obstacles, change.walls_gone
     cell_m2 = res * res
     areas = {}
     for i, key in enumerate(names):
@@ -77,6 +78,11 @@ def place_likeness(similarity: float, neighbour: float) -> float:
     return float(np.clip((similarity - neighbour) / (1 - neighbour), 0, 1))
 
 
+def changed_below(neighbour: float, c) -> float:
+    """The similarity under which a view is changed: `place_likeness` under `c.min_place_likeness`."""
+    return neighbour + c.min_place_likeness * (1 - neighbour)
+
+
 def verdicts(images: dict, baseline: dict | None, mapd: dict, cfg: SitelocConfig) -> dict:
     """Per area: the figures side by side and what to do ('re-capture', 'update map', 'ok', 'too few data')."""
     c = cfg.check
@@ -96,14 +102,17 @@ def verdicts(images: dict, baseline: dict | None, mapd: dict, cfg: SitelocConfig
             if drop > c.max_recall_drop:
                 reasons.append(f"recall@4 {new['recall_at_4']:.2f} against {base['recall_at_4']:.2f}")
         if new and new["same_place_images"] >= c.min_area_images and neighbour is not None:
-            likeness = place_likeness(new["same_place_similarity"], neighbour)
-            entry["place_likeness"] = round(likeness, 4)
-            if c.min_place_likeness < 1:
-                score = max(score, (1 - likeness) / (1 - c.min_place_likeness))
-            if likeness < c.min_place_likeness:
-                reasons.append(f"views {likeness:.0%} like the bundle's at the same place (similarity "
-                               f"{new['same_place_similarity']:.2f}; 1.00 unchanged, {neighbour:.2f} a "
-                               f"neighbouring stop)")
+            entry["place_likeness"] = round(place_likeness(new["same_place_similarity"], neighbour), 4)
+            changed = new.get("same_place_changed")
+            if changed is not None:
+                share = changed / new["same_place_images"]
+                entry["changed_view_share"] = round(share, 4)
+                score = max(score, share / c.max_changed_views)
+                if share > c.max_changed_views:
+                    reasons.append(f"{changed} of {new['same_place_images']} views ({share:.0%}) unlike the "
+                                   f"bundle's at the same place (likeness under {c.min_place_likeness:.2f}: "
+                                   f"similarity under {changed_below(neighbour, c):.2f}, 1.00 unchanged, "
+                                   f"{neighbour:.2f} a neighbouring stop)")
         map_reasons = []
         if m and m["endpoints"] >= c.min_area_endpoints:
             share = m["endpoint_share_on_walls"]
@@ -193,8 +202,8 @@ def drift_figure(path: Path, occ_map: OccupancyMap, owner: np.ndarray, names: li
 def report_md(doc: dict) -> str:
     lines = [f"# Check of {doc['bundle']['name']} against {doc['data']}", "", *[f"- {t}" for t in
              doc["recommendation"]["text"]], "",
-             "| area | verdict | images | recall@4 (baseline) | views like the bundle's | endpoints on walls | "
-             "changed m2 |", "| --- | --- | --- | --- | --- | --- | --- |"]
+             "| area | verdict | images | recall@4 (baseline) | views changed | views like the bundle's (median) | "
+             "endpoints on walls | changed m2 |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
 
     def f(v, fmt="{:.2f}"):
         return "-" if v is None else fmt.format(v)
@@ -204,11 +213,13 @@ def report_md(doc: dict) -> str:
         b = e["baseline"] or (doc.get("baseline_all") or {})
         star = "" if e["baseline"] else "*"
         lines.append(f"| {key} | {e['verdict']} | {n.get('images', 0)} | {f(n.get('recall_at_4'))} "
-                     f"({f(b.get('recall_at_4'))}{star}) | {f(e.get('place_likeness'), '{:.0%}')} | "
+                     f"({f(b.get('recall_at_4'))}{star}) | {f(e.get('changed_view_share'), '{:.0%}')} | "
+                     f"{f(e.get('place_likeness'), '{:.0%}')} | "
                      f"{f(m.get('endpoint_share_on_walls'), '{:.0%}')} | {f(m.get('changed_m2'))} |")
     lines += ["", "Baseline: the bundle's own figures at export, on its held-out stops; * the whole site's, for an "
               "area without held-out stops. Views like the bundle's: 100% identical, 0% no closer than a "
-              "neighbouring stop's view.", ""]
+              "neighbouring stop's view; a view is changed under check.min_place_likeness, and an area is "
+              "re-captured when more than check.max_changed_views of its views changed.", ""]
     if doc.get("localization"):
         lines.append(f"Localization on the new runs: {doc['localization']}")
     return "\n".join(lines) + "\n"
@@ -300,10 +311,12 @@ def run_check(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str,
             (root / "models" / "describer.json").read_text()).get("classes") or [])
         c = cfg.check
         figures = {"areas": {}, "all": None}
+        baseline = json.loads((root / BASELINE_FILE).read_text()) if (root / BASELINE_FILE).is_file() else None
+        neighbour = ((baseline or {}).get("all") or {}).get("neighbour_similarity")
         if images is not None and images.num_rows:
             keys = image_keys(images, bundle_images, cfg.update.proximity_m)
-            figures = measure(retriever, data, images, boxes, keys, check=c, classes=classes, progress=progress)
-        baseline = json.loads((root / BASELINE_FILE).read_text()) if (root / BASELINE_FILE).is_file() else None
+            figures = measure(retriever, data, images, boxes, keys, check=c, classes=classes, progress=progress,
+                              changed_below=None if neighbour is None else changed_below(neighbour, c))
         occ_map = read_map(root / "map" / "map.yaml")
         stops = stops_of(bundle_images)
         owner, names = cell_owners(occ_map, stops.xy, stops.keys())

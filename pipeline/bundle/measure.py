@@ -6,7 +6,8 @@ building as it is now; `diff --data` runs it for two bundles on the same images.
 by the bundle's own ONNX graph (no torch) and retrieved as the robot would (IPA Top-N, RPA re-ranking).
 Per area: recall@1 / @4 (a result within `check.position_m` and `check.heading_deg` of the image's pose),
 the median same-place similarity (cosine of the whitened IPA with a database view within
-`check.same_place_m` and `check.same_place_deg`: 1 for an identical view), the median neighbour
+`check.same_place_m` and `check.same_place_deg`: 1 for an identical view) and, given a floor, how many
+same-place views fall under it (changed views: a few posters change a few views, not the median), the median neighbour
 similarity (the same with the nearest database view, for images that have none at their place: how
 alike two neighbouring stops look) and, where the images have boxes, the COCO mAP@0.5 of the detections the
 bundle keeps (score >= retrieval.rpa_min_score).
@@ -76,8 +77,9 @@ def _boxes_by_image(boxes: pa.Table) -> dict[str, tuple[np.ndarray, np.ndarray]]
 
 
 def measure(retriever: BundleRetriever, root: Path, images: pa.Table, boxes: pa.Table | None, keys: list[str], *,
-            check, classes: list[str], progress: bool = True) -> dict:
-    """{"areas": {key: figures}, "all": figures} of the images (rows of an `images` table under `root`)."""
+            check, classes: list[str], changed_below: float | None = None, progress: bool = True) -> dict:
+    """{"areas": {key: figures}, "all": figures} of the images (rows of an `images` table under `root`);
+    with `changed_below`, the figures count the same-place views less similar than it (`same_place_changed`)."""
     from pipeline.detection.evaluate import coco_map
     from pipeline.progress import progress_bar
     from pipeline.retrieval.database import query_database
@@ -128,6 +130,7 @@ def measure(retriever: BundleRetriever, root: Path, images: pa.Table, boxes: pa.
         return {"images": len(rows), "recall_at_1": float(np.mean([hits1[j] for j in rows])),
                 "recall_at_4": float(np.mean([hits4[j] for j in rows])),
                 "same_place_images": len(at), "same_place_similarity": float(np.median(at)) if at else None,
+                "same_place_changed": None if changed_below is None else int(np.sum(np.array(at) < changed_below)),
                 "neighbour_similarity": float(np.median(near)) if near else None,
                 "images_with_boxes": len(boxed), "detector_map_50": mapped}
 

@@ -51,6 +51,7 @@ def test_the_unchanged_site_shows_no_drift(micro_bundle, tmp_path):
     assert judged and all(e["verdict"] == "ok" for e in judged)
     # The database's own views, captured again unchanged, are identical to the bundle's at their place.
     assert all(e["place_likeness"] == 1.0 for e in judged if "place_likeness" in e)
+    assert all(e["changed_view_share"] == 0.0 for e in judged if "place_likeness" in e)
     assert doc["map"]["endpoint_share_on_walls"] > 0.9 and doc["map"]["scans"] > 0
     assert {p.name for p in out.iterdir()} >= {"report.json", "report.md", "drift.png", "config.yaml"}
 
@@ -65,6 +66,26 @@ def test_a_changed_stop_is_flagged_and_nothing_else(micro_bundle, tmp_path):
     assert doc["recommendation"]["recapture"] == [key], doc["recommendation"]
     assert doc["areas"][key]["place_likeness"] < cfg.check.min_place_likeness
     assert "Re-capture " + key in (out / "report.md").read_text()
+
+
+def test_an_area_is_re_captured_when_more_than_a_share_of_its_views_changed(micro_bundle, tmp_path):
+    cfg, ing, _, _, bundle = micro_bundle
+    stop, key = lone_database_stop(bundle)
+    reports = {}
+    for views in (1, 2):  # of 6: 17 % and 33 %, either side of check.max_changed_views (20 %)
+        new = mirrored_stop(ing, tmp_path / f"new{views}", stop, views=views)
+        out = run_check(cfg, inputs={"bundle": bundle, "data": new}, outputs={"out": tmp_path / f"c{views}"},
+                        localize=False, progress=False)
+        reports[views] = json.loads((out / "report.json").read_text())
+        area = reports[views]["areas"][key]
+        assert area["new"]["same_place_changed"] == views and area["new"]["same_place_images"] == 6
+        assert area["changed_view_share"] == pytest.approx(views / 6, abs=1e-4)
+        # The median view is unchanged either way: the median alone would call both areas alike.
+        assert area["place_likeness"] == 1.0
+    assert cfg.check.max_changed_views == 0.2
+    assert reports[1]["recommendation"]["recapture"] == []
+    assert reports[2]["recommendation"]["recapture"] == [key]
+    assert "2 of 6 views (33%) unlike the bundle's" in reports[2]["areas"][key]["reasons"][0]
 
 
 def test_place_likeness_is_one_for_the_same_view_and_zero_at_a_neighbours():
