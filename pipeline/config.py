@@ -142,7 +142,15 @@ class SensorModelConfig(Strict):
                                        "(nav2: beam_skip_threshold)")
     beam_skip_error_threshold: float = Field(0.9, gt=0, le=1, description="if this share of the beams would be "
                                              "skipped, the belief is wrong, not the beams: use them all (nav2: "
-                                             "beam_skip_error_threshold)")
+                                             "beam_skip_error_threshold), but for a settled belief's unmapped "
+                                             "ones (unmapped_margin_m)")
+    unmapped_margin_m: float | None = Field(
+        0.5, gt=0, description="likelihood field: while the filter tracks one settled belief, a beam ending this "
+        "far short of the map's first wall along it, seen from that belief, hit something the map does not have "
+        "(a parked car, people): it is left out of the relative likelihood the kidnap rule and the random "
+        "particles read (it still weighs the particles, or is skipped, as above). A beam that ends beyond the "
+        "wall, or short and no such wall, still counts: a wrong pose sees through walls. null: every beam counts")
+
     @model_validator(mode="after")
     def _beam_skip_model(self) -> SensorModelConfig:
         if self.beam_skip and self.model != "likelihood_field" and "beam_skip" in self.model_fields_set:
@@ -165,6 +173,14 @@ class KidnapConfig(Strict):
         0.5, gt=0, le=1, description="per-beam likelihood of the best particle, as a share of a perfect match's"
     )
     updates: int = Field(3, ge=1, description="consecutive updates below the threshold before declaring lost")
+    trust_updates: int = Field(10, ge=0, description="updates the filter must have tracked (since it converged; "
+                               "from init_pose at once) before beams ending short of its map are taken for unmapped "
+                               "obstacles (sensor.unmapped_margin_m): a fresh lock on a wrong place must still see "
+                               "them. Intel at 1 m, global: 18 steps to converge with 0, 8 with 10")
+    min_beams: int = Field(5, ge=1, description="an update whose relative likelihood rests on fewer beams (the "
+                           "returns, less those sensor.unmapped_margin_m leaves out) is no evidence either way: it "
+                           "neither counts towards nor resets the rule, nor moves w_slow / w_fast (open ground, a "
+                           "car filling the view)")
     fast_slow_ratio: float = Field(0.3, gt=0, lt=1, description="w_fast / w_slow below this also counts")
     converged_std_m: float = Field(0.5, gt=0, description="position std of the best cluster to call it tracking")
     converged_share: float = Field(0.8, gt=0, le=1, description="weight of the best cluster to call it tracking")

@@ -70,6 +70,8 @@ class AdaptiveMCL:
         self.bin_theta = math.radians(cfg.kld.bin_theta_deg)
         self._odom: np.ndarray | None = None  # odometry at the last applied update
         self._best = 1.0
+        self._judged = False
+        self._mode: np.ndarray | None = None  # the last measured belief's settled mode (`_note_mode`)
         self._reset(lmap.sample_free(cfg.max_particles, self.rng), FilterState.RELOCALISING)
 
     # ------------------------------------------------------------------------------------ initialisation
@@ -78,11 +80,14 @@ class AdaptiveMCL:
         """A new particle set with equal weights."""
         self.particles = particles
         self.log_w = np.full(len(particles), -math.log(len(particles)))
+        self._fresh = np.zeros(len(particles), dtype=bool)  # drawn at random by the last resampling
 
     def _reset(self, particles: np.ndarray, state: FilterState) -> None:
         self._set_particles(particles)
         self.state = state
         self.w_slow = self.w_fast = 0.0
+        self._mode = None
+        self._tracked = 0  # judged updates since the filter last began tracking
         self._low_updates = 0
         self._good_updates = 0
         self._force = True
@@ -100,6 +105,7 @@ class AdaptiveMCL:
                                        std_xy or c.init_std_xy, std_theta or math.radians(c.init_std_theta_deg),
                                        self.rng)
         self._reset(parts, FilterState.TRACKING)
+        self._tracked = self.cfg.kidnap.trust_updates  # a pose the caller knows is trusted from the start
 
     def init_candidates(self, poses, weights=None, n: int | None = None, std_theta=None) -> None:
         """Weighted candidate poses (image retrieval's Top-K; 4:3:2:1 by default), each with a Gaussian spread
@@ -139,7 +145,7 @@ class AdaptiveMCL:
         room = self.cfg.max_particles - n
         if len(self.particles) > room:
             keep = np.argsort(-self.log_w, kind="stable")[:room]
-            self.particles, self.log_w = self.particles[keep], self.log_w[keep]
+            self.particles, self.log_w, self._fresh = self.particles[keep], self.log_w[keep], self._fresh[keep]
         if share is None or not len(self.log_w):
             new_w = logsumexp(self.log_w) - math.log(max(len(self.log_w), 1)) if len(self.log_w) else 0.0
         else:  # the new particles hold `share` of the belief together, the old ones the rest
@@ -147,6 +153,7 @@ class AdaptiveMCL:
             new_w = math.log(share / n)
         self.particles = np.vstack([self.particles, new])
         self.log_w = np.r_[self.log_w, np.full(n, new_w)]
+        self._fresh = np.r_[self._fresh, np.zeros(n, dtype=bool)]
         self.log_w -= logsumexp(self.log_w)
         if self.state == FilterState.LOST:
             self.state = FilterState.RELOCALISING
@@ -187,26 +194,44 @@ class AdaptiveMCL:
         moved = trans >= self.cfg.update_min_d or turn >= math.radians(self.cfg.update_min_a_deg)
         if not (moved or self._force):
             return self._result(False)
+        settled = self._settled_pose(rot1, trans, rot2)
         self.particles = sample_motion_model_odometry(self.particles, self._odom, odom, self.alpha, self.rng)
         self._odom = odom
         self._force = False
+        self._judged = False
         if scan is not None:
-            self._measure(scan)
+            self._measure(scan, settled)
+        else:
+            self._note_mode()
         self._estimate = estimate_pose(self.particles, self.weights, self.cfg.kld.bin_xy, self.bin_theta)
         self._update_state()
         return self._result(True)
 
-    def _measure(self, scan: Scan) -> None:
+    def _measure(self, scan: Scan, settled: np.ndarray | None) -> None:
         c = self.cfg
         prior = self.weights
-        res = (self.sensor.evaluate_skipping if self._skips_beams(prior) else self.sensor.evaluate)(self.particles,
-                                                                                                     scan)
+        res = (self.sensor.evaluate_skipping if self._skips_beams(prior) else self.sensor.evaluate)(
+            self.particles, scan, settled=settled)
         if res.beams_used == 0:
+            self._note_mode()
             return
         self.log_w = self.log_w + res.log_likelihood
         self.log_w -= logsumexp(self.log_w)
+        self._note_mode()
+        if res.beams_in_relative < c.kidnap.min_beams:  # too little left to tell lost from an unlucky scan
+            self._resample(scan)
+            return
+        self._judged = True
         self._best = float(res.relative_likelihood.max())
-        w_avg = float(prior @ res.relative_likelihood)
+        # The belief's average likelihood. While tracking, the particles the last resampling drew at random
+        # carry no evidence yet: counting them would lower w_fast, draw more of them, and so on (a map of
+        # hectares, 500 particles). While searching they are the search, and their misfit its spur.
+        rel = res.relative_likelihood
+        if self.state == FilterState.TRACKING and self._fresh.any() and not self._fresh.all():
+            informed = ~self._fresh
+            w_avg = float(prior[informed] @ rel[informed]) / max(float(prior[informed].sum()), 1e-300)
+        else:
+            w_avg = float(prior @ rel)
         if self.w_slow == 0.0:
             self.w_slow, self.w_fast = w_avg, w_avg
         else:
@@ -230,8 +255,45 @@ class AdaptiveMCL:
             return False
         w = self.weights if weights is None else weights
         xy = self.particles[:, :2]
+        if self._fresh.any():  # the random draws carry no evidence yet: see _measure
+            w, xy = w[~self._fresh], xy[~self._fresh]
+            if w.sum() <= 0:
+                return False
+            w = w / w.sum()
         var = w @ (xy - w @ xy) ** 2
         return bool(np.sqrt(var.sum()) <= s.beam_skip_spread_m)
+
+    def _settled_pose(self, rot1: float, trans: float, rot2: float) -> np.ndarray | None:
+        """Where the last measured belief's mode is after this motion, if that mode was settled (`_note_mode`),
+        else None: the pose the sensor tells unmapped obstacles by."""
+        if self._mode is None or self.state != FilterState.TRACKING or self._tracked < self.cfg.kidnap.trust_updates:
+            return None
+        x, y, theta = self._mode
+        heading = theta + rot1
+        return np.array([x + trans * math.cos(heading), y + trans * math.sin(heading), heading + rot2])
+
+    def _note_mode(self) -> None:
+        """After a measurement, before resampling (so the augmented MCL's random particles, spread over the
+        map with no evidence yet, do not count): the weighted particles within 1 m of the heaviest. Their
+        mean is the settled mode when they hold kidnap.converged_share of the weight within
+        kidnap.converged_std_m of position std."""
+        k = self.cfg.kidnap
+        self._mode = None
+        j = int(np.argmax(self.log_w))  # log_w is normalised here: the weights are exp(log_w)
+        d = self.particles[:, :2] - self.particles[j, :2]
+        near = np.einsum("ij,ij->i", d, d) < 1.0
+        w = np.exp(self.log_w[near])
+        share = float(w.sum())
+        if share < k.converged_share:
+            return
+        w /= share
+        d = d[near]
+        mean = w @ d
+        if math.sqrt(float(w @ np.einsum("ij,ij->i", d - mean, d - mean))) > k.converged_std_m:
+            return
+        theta = self.particles[near, 2]
+        self._mode = np.array([self.particles[j, 0] + mean[0], self.particles[j, 1] + mean[1],
+                               math.atan2(float(w @ np.sin(theta)), float(w @ np.cos(theta)))])
 
     def _resample(self, scan: Scan) -> None:
         c = self.cfg
@@ -248,6 +310,7 @@ class AdaptiveMCL:
             swap = self.rng.random(n) < p_random
             if swap.any():
                 self.particles[swap] = self.map.sample_free(int(swap.sum()), self.rng)
+                self._fresh = swap
         elif c.method == "mixture" and c.mixture_share > 0:
             self._mix_dual(scan)
 
@@ -270,6 +333,7 @@ class AdaptiveMCL:
         self.particles = np.vstack([self.particles[keep], dual])
         w = np.r_[np.full(n - m, (1.0 - c.mixture_share) / (n - m)), c.mixture_share * density / density.sum()]
         self.log_w = np.log(w)
+        self._fresh = np.zeros(n, dtype=bool)
 
     def _update_state(self) -> None:
         k = self.cfg.kidnap
@@ -290,11 +354,16 @@ class AdaptiveMCL:
                 self._force = True
             return
         if self.state != FilterState.TRACKING:
+            if not self._judged:  # no evidence either way (kidnap.min_beams)
+                return
             good = tight and self._best >= k.min_likelihood and self._low_updates == 0
             # One tight update can be a wrong mode that happened to fit; several in a row rarely are.
             self._good_updates = self._good_updates + 1 if good else 0
             if self._good_updates >= k.updates:
                 self.state = FilterState.TRACKING
+                self._tracked = 0
+        elif self._judged:
+            self._tracked += 1
 
     def _result(self, updated: bool) -> StepResult:
         e = self._estimate

@@ -4,6 +4,9 @@ Both return a proper log-likelihood per particle: the sum over the used beams of
 divided by `temperature` (>= 1 flattens the product of correlated beams). They also return the
 per-beam geometric mean likelihood exp(mean log p) relative to a perfect match, a number in (0, 1]
 that does not depend on how many beams were used: the augmented MCL averages and the kidnap rule read it.
+Given a settled belief's pose, the likelihood field leaves out of that number the beams that end well
+short of the map's first wall seen from there (`unmapped_margin_m`): an unmapped obstacle in front of the
+laser is not evidence that the robot is lost, a beam through a wall is.
 
 Scans follow REP 117: +inf is "no return within range" (a max-range reading), NaN and -inf are
 invalid and skipped, readings below `range_min` are skipped. Beams are subsampled evenly to
@@ -52,7 +55,12 @@ class Scan:
 class SensorResult:
     log_likelihood: np.ndarray  # (N,) sum of log p over used beams / temperature
     relative_likelihood: np.ndarray  # (N,) per-beam geometric mean likelihood / a perfect match's, in (0, 1]
-    beams_used: int
+    beams_used: int  # beams in log_likelihood
+    beams_judged: int = -1  # beams in relative_likelihood (-1: beams_used)
+
+    @property
+    def beams_in_relative(self) -> int:
+        return self.beams_used if self.beams_judged < 0 else self.beams_judged
 
 
 def subsample(n_beams: int, max_beams: int) -> np.ndarray:
@@ -93,38 +101,68 @@ class LikelihoodFieldModel:
         ok = np.isfinite(r) & (r >= self.cfg.range_min) & (r < min(scan.range_max, self.range_max))
         return r[ok], a[ok]
 
-    def evaluate(self, particles: np.ndarray, scan: Scan) -> SensorResult:
-        return self._evaluate(particles, scan, skip=False)
+    def evaluate(self, particles: np.ndarray, scan: Scan, settled: np.ndarray | None = None) -> SensorResult:
+        return self._evaluate(particles, scan, skip=False, settled=settled)
 
-    def evaluate_skipping(self, particles: np.ndarray, scan: Scan) -> SensorResult:
+    @functools.cached_property
+    def safe(self) -> np.ndarray:
+        """Safe ray steps (cells) from the capped distance field, for `unmapped_beams` (see kernels.safe_steps)."""
+        d = self.map.distance_padded[1:-1, 1:-1] * np.float32(1.0 / self.map.resolution)
+        return d - np.float32(math.sqrt(2.0))
+
+    def unmapped_beams(self, settled: np.ndarray, r: np.ndarray, a: np.ndarray) -> np.ndarray:
+        """(B,) bool: beams (ranges `r`, bearings `a`) ending more than `unmapped_margin_m` short of the map's
+        first wall along them, cast from the base pose `settled` (x, y, theta)."""
+        laser = laser_poses(np.asarray(settled, dtype=np.float64).reshape(1, 3), self.base_from_laser)
+        expected = kernels.cast_rays(laser, a, self.map.occupied, self.safe, self.map.resolution,
+                                     (self.map.origin_x, self.map.origin_y), self.range_max)[0]
+        return r < expected - self.cfg.unmapped_margin_m
+
+    def evaluate_skipping(self, particles: np.ndarray, scan: Scan, settled: np.ndarray | None = None) -> SensorResult:
         """`evaluate` with nav2 amcl's beam skipping (`cfg.beam_skip_*`): a beam whose endpoint lies within
         beam_skip_distance of an obstacle for fewer than beam_skip_threshold of the particles is left out of
         the weights (it most likely hit something the map does not have), unless beam_skip_error_threshold of
-        the beams would go (then the belief, not the beams, is wrong). The relative likelihood, which the
-        kidnap rule reads, still scores every beam: skipping must not hide a kidnapping."""
-        return self._evaluate(particles, scan, skip=True)
+        the beams would go (then the belief, not the beams, is wrong, unless `settled` finds them ending short
+        of its map: then those go, a crowd all round leaves nothing to weigh). The relative likelihood, which the
+        kidnap rule reads, does not follow the skipping: a beam the particles disagree with may be a beam
+        through a wall, which only a kidnapping explains (`settled` leaves out the unmapped ones)."""
+        return self._evaluate(particles, scan, skip=True, settled=settled)
 
-    def _evaluate(self, particles: np.ndarray, scan: Scan, *, skip: bool) -> SensorResult:
+    def _evaluate(self, particles: np.ndarray, scan: Scan, *, skip: bool,
+                  settled: np.ndarray | None = None) -> SensorResult:
         r, a = self.beams(scan)
         n = len(particles)
         if len(r) == 0:  # nothing seen: the scan says nothing about the pose
             return SensorResult(np.zeros(n), np.ones(n), 0)
         poses = laser_poses(particles, self.base_from_laser)
         bx, by, origin = r * np.cos(a), r * np.sin(a), (self.map.origin_x, self.map.origin_y)
-        total = kernels.field_sum(poses, bx, by, self.field, self.map.resolution, origin, backend=self.backend)
-        rel = np.exp(total / len(r) - self.log_best)
+        unmapped = None
+        if settled is not None and self.cfg.unmapped_margin_m is not None:
+            unmapped = self.unmapped_beams(settled, r, a)
+        if unmapped is None or not unmapped.any():
+            total = kernels.field_sum(poses, bx, by, self.field, self.map.resolution, origin, backend=self.backend)
+            rel, judged = np.exp(total / len(r) - self.log_best), len(r)
+        else:  # two disjoint passes: the same work as one
+            fit = kernels.field_sum(poses, bx[~unmapped], by[~unmapped], self.field, self.map.resolution, origin,
+                                    backend=self.backend)
+            total = fit + kernels.field_sum(poses, bx[unmapped], by[unmapped], self.field, self.map.resolution,
+                                            origin, backend=self.backend)
+            judged = int((~unmapped).sum())
+            rel = np.exp(fit / judged - self.log_best) if judged else np.ones(n)
         keep = None
         if skip:
             agree = kernels.beam_agreement(poses, bx, by, self.map.distance_padded, self.cfg.beam_skip_distance,
                                            self.map.resolution, origin, backend=self.backend)
             keep = agree >= self.cfg.beam_skip_threshold
             if 1.0 - keep.mean() >= self.cfg.beam_skip_error_threshold:
-                keep = None
+                # The particles disagree with nearly every beam: the belief is wrong, or something the map
+                # lacks fills the view. A settled belief tells them apart: only its unmapped beams go.
+                keep = None if unmapped is None else ~unmapped
         if keep is None or keep.all():
-            return SensorResult(total / self.cfg.temperature, rel, len(r))
+            return SensorResult(total / self.cfg.temperature, rel, len(r), judged)
         kept = kernels.field_sum(poses, bx[keep], by[keep], self.field, self.map.resolution, origin,
                                  backend=self.backend)
-        return SensorResult(kept / self.cfg.temperature, rel, int(keep.sum()))
+        return SensorResult(kept / self.cfg.temperature, rel, int(keep.sum()), judged)
 
 
 _TABLES: dict[tuple, tuple[np.ndarray, np.ndarray, float]] = {}
@@ -211,7 +249,8 @@ class BeamModel:
         p_rand = np.where(is_max, 0.0, 1.0 / zmax)
         return c.z_hit * p_hit + c.z_short * p_short + c.z_max * is_max + c.z_rand * p_rand
 
-    def evaluate(self, particles: np.ndarray, scan: Scan) -> SensorResult:
+    def evaluate(self, particles: np.ndarray, scan: Scan, settled: np.ndarray | None = None) -> SensorResult:
+        """Weights and relative likelihoods; `settled` is ignored: p_short explains unmapped obstacles here."""
         z, a = self.beams(scan)
         n = len(particles)
         if len(z) == 0:

@@ -167,21 +167,39 @@ def test_updates_are_gated_and_seeded(world):
         np.testing.assert_array_equal(x.pose, y.pose)
 
 
-def test_a_false_alarm_keeps_the_right_belief(world):
-    """People in front of the laser for a few scans make the filter declare itself lost; the heaviest
-    particles it keeps (kidnap.keep_particles) bring it straight back instead of a new global search."""
+def test_a_crowd_in_front_of_the_laser_is_no_alarm_and_a_false_alarm_keeps_the_right_belief(world):
+    """People all round the robot end every beam short of the map's walls: while the belief is settled
+    that is no evidence of being lost (sensor.unmapped_margin_m, kidnap.min_beams). Scans that fit the
+    map nowhere for a few updates (beams through its walls) do make the filter declare itself lost; the
+    heaviest particles it keeps (kidnap.keep_particles) bring it straight back instead of a new search."""
     occ, runs, scans, scanner = world
     run, ranges = runs["mapping_00"], scans["mapping_00"]
     f = make(occ, kidnap={"keep_particles": 100})
     f.init_pose(run.gt[0])
     errors, _, _ = replay(f, run, ranges, scanner, stop=20)
     assert errors[-1] < 0.2
-    blocked = np.full_like(ranges[0], 0.4)  # a crowd a step away, all round
+    crowd = np.minimum(ranges[20], 0.4)  # a crowd a step away, all round
+    for k in range(20, 25):
+        assert f.update(run.odom[k], scan_of(scanner, crowd)).state == FilterState.TRACKING
+    # Five steps on odometry alone leave the belief off by decimetres; the scans after the crowd bring it back.
+    errors, _, _ = replay(f, run, ranges, scanner, start=25, stop=45)
+    assert np.all(errors[-10:] < 0.3) and f.state == FilterState.TRACKING, errors
+    # The same crowd while the filter is not tracking is evidence like any scan: the rule reads every beam.
+    searching = make(occ, sensor={"unmapped_margin_m": None})
+    searching.init_pose(run.gt[0])
+    replay(searching, run, ranges, scanner, stop=20)
     k = 20
-    while f.state != FilterState.LOST:
-        f.update(run.odom[k], scan_of(scanner, blocked))
+    while searching.state != FilterState.LOST:
+        searching.update(run.odom[k], scan_of(scanner, crowd))
         k += 1
-        assert k < 30, "three blocked scans must make it lost"
+        assert k < 30, "with every beam counted, three blocked scans make it lost"
+
+    k = 45
+    while f.state != FilterState.LOST:
+        through = np.where(ranges[k] < RANGE_MAX - 2, ranges[k] + 1.5, ranges[k])  # beyond every wall
+        f.update(run.odom[k], scan_of(scanner, through))
+        k += 1
+        assert k < 55, "three scans through the walls must make it lost"
     near = np.hypot(*(f.particles[:, :2] - run.gt[k - 1, :2]).T) < 0.5
     assert len(f.particles) == f.cfg.max_particles and near.sum() >= 100
     errors, _, _ = replay(f, run, ranges, scanner, start=k, stop=k + 6)
@@ -200,7 +218,8 @@ def test_beams_are_skipped_only_while_the_belief_is_one_settled_cluster(world, m
         f = make(occ, sensor={"beam_skip": True, **sensor})
         f.init_pose(run.gt[0])
         replay(f, run, ranges, scanner, stop=5)
-        monkeypatch.setattr(f.sensor, "evaluate_skipping", lambda *a: used.append("skip") or f.sensor.evaluate(*a))
+        monkeypatch.setattr(f.sensor, "evaluate_skipping",
+                            lambda *a, **k: used.append("skip") or f.sensor.evaluate(*a, **k))
         return f
 
     f = track()
@@ -220,3 +239,34 @@ def test_beams_are_skipped_only_while_the_belief_is_one_settled_cluster(world, m
     assert nav2._skips_beams()
     assert not make(occ, sensor={"beam_skip": False})._skips_beams()
     assert not make(occ, sensor={"model": "beam"})._skips_beams()  # the beam model never skips
+
+
+def test_random_particles_carry_no_evidence_into_the_average_likelihood(world, monkeypatch):
+    """Augmented MCL: w_avg is the belief's average scan likelihood. The particles the last resampling
+    drew at random over the map are left out of it (and of the beam-skip spread) until weighed: counting
+    them lowers w_fast, which draws more of them, until a large map's few particles are mostly noise."""
+    occ, runs, scans, scanner = world
+    run, ranges = runs["mapping_00"], scans["mapping_00"]
+    f = make(occ, sensor={"beam_skip": False})
+    f.init_pose(run.gt[0])
+    replay(f, run, ranges, scanner, stop=10)
+    f.w_slow, f.w_fast = 1.0, 0.5  # p_random = 0.5 at the next resampling
+    f.update(run.odom[10], scan_of(scanner, ranges[10]))
+    fresh = f._fresh.copy()
+    assert 0.35 < fresh.mean() < 0.65
+    assert np.median(np.hypot(*(f.particles[fresh, :2] - run.gt[10, :2]).T)) > 2.0  # spread over the floor
+    seen = {}
+    evaluate = f.sensor.evaluate
+
+    def spy(particles, scan, settled=None):
+        seen["res"] = evaluate(particles, scan, settled=settled)
+        return seen["res"]
+
+    monkeypatch.setattr(f.sensor, "evaluate", spy)
+    prior, w_fast = f.weights.copy(), f.w_fast
+    f.update(run.odom[11], scan_of(scanner, ranges[11]))
+    rel = seen["res"].relative_likelihood
+    informed = ~fresh
+    w_avg = prior[informed] @ rel[informed] / prior[informed].sum()
+    assert f.w_fast == pytest.approx(w_fast + f.cfg.alpha_fast * (w_avg - w_fast))
+    assert prior @ rel < 0.8 * w_avg  # with the random draws counted, the average would have fallen

@@ -127,6 +127,43 @@ def test_beam_skipping_leaves_out_what_the_map_lacks_and_only_that(lmap):
     assert SensorModelConfig(model="beam").beam_skip  # the default does not stand in the beam model's way
 
 
+def test_a_settled_belief_leaves_unmapped_obstacles_out_of_the_kidnap_likelihood_not_walls_seen_through(lmap):
+    cfg = SensorModelConfig(beam_skip=False)
+    model = LikelihoodFieldModel(lmap, cfg, range_max=10.0)
+    angles = np.linspace(-2.3, 2.3, 46)
+    truth = np.array([0.5, 0.0, 0.3])
+    ranges = kernels.cast_rays(truth[None], angles, lmap.occupied, kernels.safe_steps(lmap.occupied),
+                               lmap.resolution, (lmap.origin_x, lmap.origin_y), 10.0)[0]
+    tracked = truth + np.random.default_rng(0).normal(0.0, [0.05, 0.05, 0.02], (300, 3))
+    step = angles[1] - angles[0]
+    # A car 0.6 m in front blocks beams 10-29 (20 of 46): short of the walls, seen from the belief.
+    blocked = ranges.copy()
+    blocked[10:30] = 0.6
+    scan = Scan(blocked, angles[0], step, 10.0)
+    assert np.array_equal(np.flatnonzero(model.unmapped_beams(truth, blocked, angles)), np.arange(10, 30))
+    got, plain = model.evaluate(tracked, scan, settled=truth), model.evaluate(tracked, scan)
+    # The weights still score every beam; the relative likelihood is the other 26 beams' (their twin).
+    np.testing.assert_allclose(got.log_likelihood, plain.log_likelihood, rtol=1e-5)
+    twin = model.evaluate(tracked, Scan(np.where(blocked == 0.6, np.nan, blocked), angles[0], step, 10.0))
+    np.testing.assert_allclose(got.relative_likelihood, twin.relative_likelihood, rtol=1e-5)
+    assert got.relative_likelihood.max() > 0.8 > plain.relative_likelihood.max()
+    # Beams through a wall (a kidnapped robot seeing a room beyond) still count, short or not at the belief.
+    through = ranges.copy()
+    through[10:30] = ranges[10:30] + 1.5
+    seen_through = model.evaluate(tracked, Scan(through, angles[0], step, 10.0), settled=truth)
+    assert not model.unmapped_beams(truth, through, angles).any()
+    assert seen_through.relative_likelihood.max() < 0.8
+    assert (got.beams_used, got.beams_in_relative, plain.beams_in_relative) == (46, 26, 46)
+    # A car filling the view: the relative likelihood rests on what is left (the filter's kidnap.min_beams).
+    most = np.where(np.arange(46) < 44, 0.3, ranges)
+    assert model.evaluate(tracked, Scan(most, angles[0], step, 10.0), settled=truth).beams_in_relative == 2
+    # Off (null), or with no settled belief: every beam counts.
+    off = LikelihoodFieldModel(lmap, SensorModelConfig(beam_skip=False, unmapped_margin_m=None), range_max=10.0)
+    scan = Scan(blocked, angles[0], step, 10.0)
+    np.testing.assert_allclose(off.evaluate(tracked, scan, settled=truth).relative_likelihood,
+                               plain.relative_likelihood, rtol=1e-6)
+
+
 def test_off_map_particles_get_finite_low_likelihoods(lmap):
     model = LikelihoodFieldModel(lmap, SensorModelConfig(), range_max=10.0)
     scan = Scan(np.full(60, 2.0), -2.0, 4.0 / 59, 10.0)
