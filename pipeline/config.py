@@ -289,6 +289,10 @@ class FilterConfig(Strict):
     seed: int = 0
     min_particles: int = Field(500, ge=10)
     max_particles: int = Field(5000, ge=10)
+    max_particles_per_ha: float | None = Field(
+        4500.0, gt=0, description="... raised to this many per hectare of the map's free space where that is more "
+        "(a search over a large site needs them; indoor floors of under 1.1 ha keep max_particles). Campus, "
+        "4.5 ha free, global from uniform: 6 of 10 seeds converged with 5000, 9 with 20000. null: max_particles")
     alpha_slow: float = Field(0.001, ge=0, le=1)
     alpha_fast: float = Field(0.1, ge=0, le=1)
     motion: OdometryNoise = Field(

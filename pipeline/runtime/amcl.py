@@ -5,6 +5,7 @@ One filter, four methods (`FilterConfig.method`), so the paper's comparisons run
 - `amcl`: augmented MCL (random free-space particles with probability max(0, 1 - w_fast / w_slow))
   plus KLD-sampling: what the robot runs.
 - `kld`: KLD-sampling only. `mcl`: a fixed count (max_particles), no injection.
+The particle budget is max_particles, or max_particles_per_ha of the map's free space where more.
 - `mixture`: mixture MCL (Thrun, Fox, Burgard, Dellaert 2001): a share of each new set is drawn from
   the dual proposal (free-space poses drawn in proportion to the scan's likelihood) and weighted by the
   prior belief's density there (a kernel density estimate of the moved particles).
@@ -64,6 +65,9 @@ class AdaptiveMCL:
     def __init__(self, lmap: LaserMap, cfg, *, range_max: float,
                  base_from_laser: tuple[float, float, float] = (0.0, 0.0, 0.0)):
         self.map, self.cfg = lmap, cfg
+        per_ha = cfg.max_particles_per_ha
+        by_area = 0 if per_ha is None else math.ceil(per_ha * lmap.free_area_m2 / 1e4)
+        self.max_particles = max(cfg.max_particles, by_area)  # the budget: a large site's search needs more
         self.sensor = make_sensor_model(lmap, cfg.sensor, range_max, base_from_laser)
         self.rng = np.random.default_rng(cfg.seed)
         self.alpha = noise_alphas(cfg.motion)
@@ -72,7 +76,7 @@ class AdaptiveMCL:
         self._best = 1.0
         self._judged = False
         self._mode: np.ndarray | None = None  # the last measured belief's settled mode (`_note_mode`)
-        self._reset(lmap.sample_free(cfg.max_particles, self.rng), FilterState.RELOCALISING)
+        self._reset(lmap.sample_free(self.max_particles, self.rng), FilterState.RELOCALISING)
 
     # ------------------------------------------------------------------------------------ initialisation
 
@@ -95,13 +99,13 @@ class AdaptiveMCL:
 
     def init_uniform(self, n: int | None = None) -> None:
         """Global localization: particles uniform over the free space."""
-        self._reset(self.map.sample_free(n or self.cfg.max_particles, self.rng), FilterState.RELOCALISING)
+        self._reset(self.map.sample_free(n or self.max_particles, self.rng), FilterState.RELOCALISING)
 
     def init_pose(self, pose, std_xy: float | None = None, std_theta: float | None = None,
                   n: int | None = None) -> None:
         """Tracking from a known pose: a Gaussian around it."""
         c = self.cfg
-        parts = self.map.sample_around(np.asarray(pose, dtype=np.float64)[None], np.ones(1), n or c.max_particles,
+        parts = self.map.sample_around(np.asarray(pose, dtype=np.float64)[None], np.ones(1), n or self.max_particles,
                                        std_xy or c.init_std_xy, std_theta or math.radians(c.init_std_theta_deg),
                                        self.rng)
         self._reset(parts, FilterState.TRACKING)
@@ -110,12 +114,12 @@ class AdaptiveMCL:
     def init_candidates(self, poses, weights=None, n: int | None = None, std_theta=None) -> None:
         """Weighted candidate poses (image retrieval's Top-K; 4:3:2:1 by default), each with a Gaussian spread
         (`std_theta`: radians, one or one per pose; default init_std_theta_deg)."""
-        self._reset(self._around(poses, weights, n or self.cfg.max_particles, std_theta), FilterState.RELOCALISING)
+        self._reset(self._around(poses, weights, n or self.max_particles, std_theta), FilterState.RELOCALISING)
 
     def init_regions(self, cell_region: np.ndarray, weights, n: int | None = None) -> None:
         """Global localization from a prior over parts of the map (seed 001's (room, area) probabilities):
         particles uniform over each region's free cells, as many as its weight says."""
-        self._reset(self.map.sample_regions(cell_region, weights, n or self.cfg.max_particles, self.rng),
+        self._reset(self.map.sample_regions(cell_region, weights, n or self.max_particles, self.rng),
                     FilterState.RELOCALISING)
 
     def inject(self, poses, weights=None, n: int | None = None, std_theta=None, share: float | None = None) -> int:
@@ -126,7 +130,7 @@ class AdaptiveMCL:
         with `share` (0 < share < 1) they hold that share of the belief together instead, a hypothesis
         the scans must confirm before it can take over.
         """
-        n = min(n if n is not None else self.cfg.inject_particles, self.cfg.max_particles)
+        n = min(n if n is not None else self.cfg.inject_particles, self.max_particles)
         if n <= 0:
             return 0
         if share is not None and not 0.0 < share < 1.0:
@@ -135,14 +139,14 @@ class AdaptiveMCL:
 
     def inject_regions(self, cell_region: np.ndarray, weights, n: int | None = None) -> int:
         """Add n particles spread over labelled parts of the free space (an area prior), as `inject` does."""
-        n = min(n if n is not None else self.cfg.inject_particles, self.cfg.max_particles)
+        n = min(n if n is not None else self.cfg.inject_particles, self.max_particles)
         if n <= 0:
             return 0
         return self._add_particles(self.map.sample_regions(cell_region, weights, n, self.rng))
 
     def _add_particles(self, new: np.ndarray, share: float | None = None) -> int:
         n = len(new)
-        room = self.cfg.max_particles - n
+        room = self.max_particles - n
         if len(self.particles) > room:
             keep = np.argsort(-self.log_w, kind="stable")[:room]
             self.particles, self.log_w, self._fresh = self.particles[keep], self.log_w[keep], self._fresh[keep]
@@ -299,9 +303,9 @@ class AdaptiveMCL:
         c = self.cfg
         w = self.weights
         if c.method == "mcl":
-            self._set_particles(self.particles[low_variance_indices(w, c.max_particles, self.rng)])
+            self._set_particles(self.particles[low_variance_indices(w, self.max_particles, self.rng)])
         else:
-            self._set_particles(kld_resample(self.particles, w, min_n=c.min_particles, max_n=c.max_particles,
+            self._set_particles(kld_resample(self.particles, w, min_n=c.min_particles, max_n=self.max_particles,
                                              err=c.kld.err, delta=c.kld.delta, bin_xy=c.kld.bin_xy,
                                              bin_theta=self.bin_theta, rng=self.rng))
         n = len(self.particles)
@@ -347,9 +351,9 @@ class AdaptiveMCL:
             self._good_updates = 0
             self._low_updates = 0
             if k.reinit_uniform:
-                n_keep = min(k.keep_particles, len(self.particles), self.cfg.max_particles)
+                n_keep = min(k.keep_particles, len(self.particles), self.max_particles)
                 kept = self.particles[np.argsort(-self.log_w, kind="stable")[:n_keep]]
-                self._set_particles(np.vstack([kept, self.map.sample_free(self.cfg.max_particles - n_keep,
+                self._set_particles(np.vstack([kept, self.map.sample_free(self.max_particles - n_keep,
                                                                           self.rng)]))
                 self._force = True
             return

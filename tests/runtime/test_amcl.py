@@ -270,3 +270,20 @@ def test_random_particles_carry_no_evidence_into_the_average_likelihood(world, m
     w_avg = prior[informed] @ rel[informed] / prior[informed].sum()
     assert f.w_fast == pytest.approx(w_fast + f.cfg.alpha_fast * (w_avg - w_fast))
     assert prior @ rel < 0.8 * w_avg  # with the random draws counted, the average would have fallen
+
+
+def test_the_particle_budget_grows_with_the_free_space_of_a_large_site():
+    """filter.max_particles_per_ha: a floor keeps max_particles; a 2.25 ha open site gets 4500 per hectare."""
+    from pipeline.io.map_yaml import FREE, OCCUPIED, OccupancyMap
+
+    grid = np.full((302, 302), FREE, dtype=np.int8)  # 0.5 m cells: 150 x 150 m of free space inside a wall
+    grid[0], grid[-1], grid[:, 0], grid[:, -1] = OCCUPIED, OCCUPIED, OCCUPIED, OCCUPIED
+    site = LaserMap.from_occupancy(OccupancyMap(grid, 0.5, 0.0, 0.0), 2.0)
+    assert site.free_area_m2 == pytest.approx(150.0 * 150.0)
+    big = AdaptiveMCL(site, FilterConfig(), range_max=RANGE_MAX)
+    assert big.max_particles == math.ceil(4500 * 2.25) and len(big.particles) == big.max_particles
+    big.init_uniform()
+    assert len(big.particles) == 10125
+    assert AdaptiveMCL(site, FilterConfig(max_particles_per_ha=None), range_max=RANGE_MAX).max_particles == 5000
+    small = LaserMap.from_occupancy(OccupancyMap(grid[:40, :40].copy(), 0.5, 0.0, 0.0), 2.0)
+    assert AdaptiveMCL(small, FilterConfig(), range_max=RANGE_MAX).max_particles == 5000
