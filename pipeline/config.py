@@ -178,6 +178,10 @@ class KidnapConfig(Strict):
                                "from init_pose at once) before beams ending short of its map are taken for unmapped "
                                "obstacles (sensor.unmapped_margin_m): a fresh lock on a wrong place must still see "
                                "them. Intel at 1 m, global: 18 steps to converge with 0, 8 with 10")
+    max_through_share: float = Field(0.3, gt=0, le=1, description="... or when more than this share of the beams "
+                                     "pass the settled belief's walls (sensor.unmapped_margin_m beyond them, or no "
+                                     "return where one lies in range): what a kidnapped robot sees, and an unmapped "
+                                     "obstacle cannot cause")
     min_beams: int = Field(5, ge=1, description="an update whose relative likelihood rests on fewer beams (the "
                            "returns, less those sensor.unmapped_margin_m leaves out) is no evidence either way: it "
                            "neither counts towards nor resets the rule, nor moves w_slow / w_fast (open ground, a "

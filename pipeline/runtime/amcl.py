@@ -241,8 +241,8 @@ class AdaptiveMCL:
         else:
             self.w_slow += c.alpha_slow * (w_avg - self.w_slow)
             self.w_fast += c.alpha_fast * (w_avg - self.w_fast)
-        low = self._best < c.kidnap.min_likelihood or (self.w_slow > 0 and self.w_fast / self.w_slow
-                                                         < c.kidnap.fast_slow_ratio)
+        low = (self._best < c.kidnap.min_likelihood or res.through_share > c.kidnap.max_through_share
+               or (self.w_slow > 0 and self.w_fast / self.w_slow < c.kidnap.fast_slow_ratio))
         self._low_updates = self._low_updates + 1 if low else 0
         self._resample(scan)
 

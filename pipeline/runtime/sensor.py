@@ -57,6 +57,7 @@ class SensorResult:
     relative_likelihood: np.ndarray  # (N,) per-beam geometric mean likelihood / a perfect match's, in (0, 1]
     beams_used: int  # beams in log_likelihood
     beams_judged: int = -1  # beams in relative_likelihood (-1: beams_used)
+    through_share: float = 0.0  # of the beams, those a settled belief sees pass its walls (`settled_view`)
 
     @property
     def beams_in_relative(self) -> int:
@@ -106,17 +107,28 @@ class LikelihoodFieldModel:
 
     @functools.cached_property
     def safe(self) -> np.ndarray:
-        """Safe ray steps (cells) from the capped distance field, for `unmapped_beams` (see kernels.safe_steps)."""
+        """Safe ray steps (cells) from the capped distance field, for `settled_view` (see kernels.safe_steps)."""
         d = self.map.distance_padded[1:-1, 1:-1] * np.float32(1.0 / self.map.resolution)
         return d - np.float32(math.sqrt(2.0))
 
-    def unmapped_beams(self, settled: np.ndarray, r: np.ndarray, a: np.ndarray) -> np.ndarray:
-        """(B,) bool: beams (ranges `r`, bearings `a`) ending more than `unmapped_margin_m` short of the map's
-        first wall along them, cast from the base pose `settled` (x, y, theta)."""
+    def settled_view(self, settled: np.ndarray, scan: Scan) -> tuple[np.ndarray, float]:
+        """The scan against the map's first walls seen from the base pose `settled` (x, y, theta): (the used
+        beams (`beams`) ending more than `unmapped_margin_m` short of it, bool; the share of the subsampled
+        beams that pass it by as much, or return nothing where it lies in range: through walls)."""
+        idx = subsample(len(scan.ranges), self.cfg.max_beams)
+        r = np.asarray(scan.ranges, dtype=np.float64)[idx]
+        a = scan.angles[idx]
+        far = min(scan.range_max, self.range_max)
+        valid = ~np.isnan(r) & ~np.isneginf(r) & ~(r < self.cfg.range_min)
         laser = laser_poses(np.asarray(settled, dtype=np.float64).reshape(1, 3), self.base_from_laser)
         expected = kernels.cast_rays(laser, a, self.map.occupied, self.safe, self.map.resolution,
                                      (self.map.origin_x, self.map.origin_y), self.range_max)[0]
-        return r < expected - self.cfg.unmapped_margin_m
+        m = self.cfg.unmapped_margin_m
+        returned = valid & (r < far)
+        seen = np.minimum(np.where(returned, r, far), far)
+        through = valid & (expected < far - m) & (seen > expected + m)
+        used = np.isfinite(r) & (r >= self.cfg.range_min) & (r < far)  # what `beams` keeps, in its order
+        return (r < expected - m)[used], float(through.sum() / max(int(valid.sum()), 1))
 
     def evaluate_skipping(self, particles: np.ndarray, scan: Scan, settled: np.ndarray | None = None) -> SensorResult:
         """`evaluate` with nav2 amcl's beam skipping (`cfg.beam_skip_*`): a beam whose endpoint lies within
@@ -136,9 +148,9 @@ class LikelihoodFieldModel:
             return SensorResult(np.zeros(n), np.ones(n), 0)
         poses = laser_poses(particles, self.base_from_laser)
         bx, by, origin = r * np.cos(a), r * np.sin(a), (self.map.origin_x, self.map.origin_y)
-        unmapped = None
+        unmapped, through = None, 0.0
         if settled is not None and self.cfg.unmapped_margin_m is not None:
-            unmapped = self.unmapped_beams(settled, r, a)
+            unmapped, through = self.settled_view(settled, scan)
         if unmapped is None or not unmapped.any():
             total = kernels.field_sum(poses, bx, by, self.field, self.map.resolution, origin, backend=self.backend)
             rel, judged = np.exp(total / len(r) - self.log_best), len(r)
@@ -159,10 +171,10 @@ class LikelihoodFieldModel:
                 # lacks fills the view. A settled belief tells them apart: only its unmapped beams go.
                 keep = None if unmapped is None else ~unmapped
         if keep is None or keep.all():
-            return SensorResult(total / self.cfg.temperature, rel, len(r), judged)
+            return SensorResult(total / self.cfg.temperature, rel, len(r), judged, through)
         kept = kernels.field_sum(poses, bx[keep], by[keep], self.field, self.map.resolution, origin,
                                  backend=self.backend)
-        return SensorResult(kept / self.cfg.temperature, rel, int(keep.sum()), judged)
+        return SensorResult(kept / self.cfg.temperature, rel, int(keep.sum()), judged, through)
 
 
 _TABLES: dict[tuple, tuple[np.ndarray, np.ndarray, float]] = {}

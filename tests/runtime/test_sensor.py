@@ -140,18 +140,23 @@ def test_a_settled_belief_leaves_unmapped_obstacles_out_of_the_kidnap_likelihood
     blocked = ranges.copy()
     blocked[10:30] = 0.6
     scan = Scan(blocked, angles[0], step, 10.0)
-    assert np.array_equal(np.flatnonzero(model.unmapped_beams(truth, blocked, angles)), np.arange(10, 30))
+    unmapped, through_share = model.settled_view(truth, scan)
+    assert np.array_equal(np.flatnonzero(unmapped), np.arange(10, 30)) and through_share == 0.0
     got, plain = model.evaluate(tracked, scan, settled=truth), model.evaluate(tracked, scan)
     # The weights still score every beam; the relative likelihood is the other 26 beams' (their twin).
     np.testing.assert_allclose(got.log_likelihood, plain.log_likelihood, rtol=1e-5)
     twin = model.evaluate(tracked, Scan(np.where(blocked == 0.6, np.nan, blocked), angles[0], step, 10.0))
     np.testing.assert_allclose(got.relative_likelihood, twin.relative_likelihood, rtol=1e-5)
     assert got.relative_likelihood.max() > 0.8 > plain.relative_likelihood.max()
-    # Beams through a wall (a kidnapped robot seeing a room beyond) still count, short or not at the belief.
+    # Beams through a wall (a kidnapped robot seeing a room beyond) still count, and are counted: 20 of 46
+    # pass the walls by 1.5 m, and 6 more return nothing where a wall lies in range.
     through = ranges.copy()
     through[10:30] = ranges[10:30] + 1.5
+    through[40:46] = np.inf
     seen_through = model.evaluate(tracked, Scan(through, angles[0], step, 10.0), settled=truth)
-    assert not model.unmapped_beams(truth, through, angles).any()
+    unmapped, through_share = model.settled_view(truth, Scan(through, angles[0], step, 10.0))
+    assert not unmapped.any() and len(unmapped) == 40
+    assert through_share == pytest.approx(26 / 46) and seen_through.through_share == pytest.approx(26 / 46)
     assert seen_through.relative_likelihood.max() < 0.8
     assert (got.beams_used, got.beams_in_relative, plain.beams_in_relative) == (46, 26, 46)
     # A car filling the view: the relative likelihood rests on what is left (the filter's kidnap.min_beams).
