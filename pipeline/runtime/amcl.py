@@ -222,7 +222,7 @@ class AdaptiveMCL:
         self.log_w = self.log_w + res.log_likelihood
         self.log_w -= logsumexp(self.log_w)
         self._note_mode()
-        if res.beams_in_relative < c.kidnap.min_beams:  # too little left to tell lost from an unlucky scan
+        if res.beams_judged < c.kidnap.min_beams:  # too little left to tell lost from an unlucky scan
             self._resample(scan)
             return
         self._judged = True

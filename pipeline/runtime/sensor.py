@@ -56,12 +56,8 @@ class SensorResult:
     log_likelihood: np.ndarray  # (N,) sum of log p over used beams / temperature
     relative_likelihood: np.ndarray  # (N,) per-beam geometric mean likelihood / a perfect match's, in (0, 1]
     beams_used: int  # beams in log_likelihood
-    beams_judged: int = -1  # beams in relative_likelihood (-1: beams_used)
+    beams_judged: int  # beams in relative_likelihood
     through_share: float = 0.0  # of the beams, those a settled belief sees pass its walls (`settled_view`)
-
-    @property
-    def beams_in_relative(self) -> int:
-        return self.beams_used if self.beams_judged < 0 else self.beams_judged
 
 
 def subsample(n_beams: int, max_beams: int) -> np.ndarray:
@@ -145,7 +141,7 @@ class LikelihoodFieldModel:
         r, a = self.beams(scan)
         n = len(particles)
         if len(r) == 0:  # nothing seen: the scan says nothing about the pose
-            return SensorResult(np.zeros(n), np.ones(n), 0)
+            return SensorResult(np.zeros(n), np.ones(n), 0, 0)
         poses = laser_poses(particles, self.base_from_laser)
         bx, by, origin = r * np.cos(a), r * np.sin(a), (self.map.origin_x, self.map.origin_y)
         unmapped, through = None, 0.0
@@ -266,7 +262,7 @@ class BeamModel:
         z, a = self.beams(scan)
         n = len(particles)
         if len(z) == 0:
-            return SensorResult(np.zeros(n), np.ones(n), 0)
+            return SensorResult(np.zeros(n), np.ones(n), 0, 0)
         if self.table is not None:
             cell_index, table, unit = self.table
             logp = kernels.beam_table_loglik(laser_poses(particles, self.base_from_laser), a, z, cell_index, table,
@@ -276,7 +272,7 @@ class BeamModel:
             z_star = self.expected(particles, a)
             logp = np.log(np.maximum(self.probabilities(z[None, :], z_star), 1e-300)).sum(axis=1)
         rel = np.exp(np.minimum(logp / len(z) - self.log_best, 0.0))
-        return SensorResult(logp / self.cfg.temperature, rel, len(z))
+        return SensorResult(logp / self.cfg.temperature, rel, len(z), len(z))
 
 
 def make_sensor_model(lmap: LaserMap, cfg, range_max: float, base_from_laser=(0.0, 0.0, 0.0)):

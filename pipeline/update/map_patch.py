@@ -52,15 +52,17 @@ def scans_with_poses(runs: list[pa.Table], base_from_laser: tuple[float, float, 
     return laser_poses(np.concatenate(poses), base_from_laser), np.concatenate(ranges), *laser
 
 
-def disagreement(old: OccupancyMap, fresh: np.ndarray, observed: np.ndarray,
-                 tolerance_m: float) -> tuple[np.ndarray, np.ndarray]:
+def disagreement(old: OccupancyMap, fresh: np.ndarray, observed: np.ndarray, tolerance_m: float,
+                 to_wall: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(new obstacles, walls gone), (H, W) bool: observed cells `fresh` calls occupied with no wall of `old`
-    within `tolerance_m`, and walls of `old` that `fresh` observed free with no wall of its own within it."""
+    within `tolerance_m`, and walls of `old` that `fresh` observed free with no wall of its own within it.
+    `to_wall`: `old`'s distance to its walls (m), when the caller compares several maps with it."""
     from scipy.ndimage import distance_transform_edt
 
     seen_wall = observed & (fresh == OCCUPIED)
     seen_free = observed & (fresh == FREE)
-    to_wall = distance_transform_edt(old.grid != OCCUPIED) * old.resolution
+    if to_wall is None:
+        to_wall = distance_transform_edt(old.grid != OCCUPIED) * old.resolution
     to_seen_wall = distance_transform_edt(~seen_wall) * old.resolution
     new_obstacles = seen_wall & (old.grid != OCCUPIED) & (to_wall > tolerance_m + 1e-9)
     walls_gone = seen_free & (old.grid == OCCUPIED) & (to_seen_wall > tolerance_m + 1e-9)
@@ -88,7 +90,7 @@ def map_change(old: OccupancyMap, runs: list[pa.Table], base_from_laser: tuple[f
     its faces, not its inside), and a person standing by one run is not there for the next; a moved wall
     is seen by every run passing it. One run is its own majority: what it saw is taken as it is.
     """
-    from scipy.ndimage import binary_dilation, label
+    from scipy.ndimage import binary_dilation, distance_transform_edt, label
 
     from pipeline.mapping.occupancy import build_occupancy_map
     from pipeline.progress import progress_bar
@@ -102,6 +104,7 @@ def map_change(old: OccupancyMap, runs: list[pa.Table], base_from_laser: tuple[f
     seen = np.zeros(old.grid.shape, dtype=np.int32)
     occupied = np.zeros(old.grid.shape, dtype=np.int32)
     per_run = []  # (observed cells packed into bits, flat indices of the cells the run alone finds changed)
+    to_wall = distance_transform_edt(old.grid != OCCUPIED) * old.resolution  # the same for every run
     scans = 0
     for poses, ranges, angle_min, angle_increment, range_max in progress_bar(
             mapped, desc="map the new runs", unit="run", enabled=progress and len(mapped) > 1):
@@ -113,13 +116,13 @@ def map_change(old: OccupancyMap, runs: list[pa.Table], base_from_laser: tuple[f
         observed = (grid == FREE) | (grid == OCCUPIED)
         seen += observed
         occupied += grid == OCCUPIED
-        new, gone = disagreement(old, grid, observed, tolerance_m)
+        new, gone = disagreement(old, grid, observed, tolerance_m, to_wall)
         per_run.append((np.packbits(observed, axis=None), np.flatnonzero(new | gone)))
         scans += len(poses)
     consensus = np.full(old.grid.shape, UNKNOWN, dtype=old.grid.dtype)
     consensus[2 * occupied > seen] = OCCUPIED
     consensus[(seen > 0) & (2 * occupied < seen)] = FREE
-    new_obstacles, walls_gone = disagreement(old, consensus, consensus != UNKNOWN, tolerance_m)
+    new_obstacles, walls_gone = disagreement(old, consensus, consensus != UNKNOWN, tolerance_m, to_wall)
 
     # Regions: the cells some run found changed, grouped when closer than the tolerance and a cell. A run
     # looked at a region when it observed one of those cells (a pushed chair's faces, where it stood).

@@ -158,10 +158,10 @@ def test_a_settled_belief_leaves_unmapped_obstacles_out_of_the_kidnap_likelihood
     assert not unmapped.any() and len(unmapped) == 40
     assert through_share == pytest.approx(26 / 46) and seen_through.through_share == pytest.approx(26 / 46)
     assert seen_through.relative_likelihood.max() < 0.8
-    assert (got.beams_used, got.beams_in_relative, plain.beams_in_relative) == (46, 26, 46)
+    assert (got.beams_used, got.beams_judged, plain.beams_judged) == (46, 26, 46)
     # A car filling the view: the relative likelihood rests on what is left (the filter's kidnap.min_beams).
     most = np.where(np.arange(46) < 44, 0.3, ranges)
-    assert model.evaluate(tracked, Scan(most, angles[0], step, 10.0), settled=truth).beams_in_relative == 2
+    assert model.evaluate(tracked, Scan(most, angles[0], step, 10.0), settled=truth).beams_judged == 2
     # Off (null), or with no settled belief: every beam counts.
     off = LikelihoodFieldModel(lmap, SensorModelConfig(beam_skip=False, unmapped_margin_m=None), range_max=10.0)
     scan = Scan(blocked, angles[0], step, 10.0)
