@@ -4,13 +4,15 @@
 
 Each round replays the log's first run once per tree (tracking from the true first pose, the `demo` filter),
 in a fresh process so neither inherits the other's modules; the revision is checked out into a temporary git
-worktree. Prints the machine, every round's ms per update and the ratio of the best of each.
+worktree. Prints the machine, every round's ms per update and the ratios of the best and of the median of each
+(shared machines vary by tens of percent between rounds: run 9 rounds or more).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -69,9 +71,10 @@ def main() -> None:
                     print(f"{label:12s} {got['ms']:.3f} ms per update ({got['updates']} updates)", flush=True)
         finally:
             subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(other)], check=False)
-    best = {k: min(v) for k, v in times.items()}
-    print(f"\nbest of {args.rounds}: {args.against} {best[args.against]:.3f} ms, this tree {best['this tree']:.3f} ms, "
-          f"this tree / {args.against} = {best['this tree'] / best[args.against]:.2f}")
+    for name, pick in (("best", min), ("median", statistics.median)):
+        t = {k: pick(v) for k, v in times.items()}
+        print(f"{name} of {args.rounds}: {args.against} {t[args.against]:.3f} ms, this tree {t['this tree']:.3f} ms, "
+              f"this tree / {args.against} = {t['this tree'] / t[args.against]:.2f}")
 
 
 if __name__ == "__main__":

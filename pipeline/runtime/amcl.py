@@ -26,7 +26,7 @@ from enum import StrEnum
 import numpy as np
 
 from pipeline.io.odometry import noise_alphas
-from pipeline.runtime.estimate import PoseEstimate, estimate_pose
+from pipeline.runtime.estimate import PoseEstimate, estimate_pose, mode_near_best
 from pipeline.runtime.grid import LaserMap
 from pipeline.runtime.motion import odometry_delta, sample_motion_model_odometry, wrap_angle
 from pipeline.runtime.sampling import kld_resample, low_variance_indices
@@ -282,22 +282,8 @@ class AdaptiveMCL:
         mean is the settled mode when they hold kidnap.converged_share of the weight within
         kidnap.converged_std_m of position std."""
         k = self.cfg.kidnap
-        self._mode = None
-        j = int(np.argmax(self.log_w))  # log_w is normalised here: the weights are exp(log_w)
-        d = self.particles[:, :2] - self.particles[j, :2]
-        near = np.einsum("ij,ij->i", d, d) < 1.0
-        w = np.exp(self.log_w[near])
-        share = float(w.sum())
-        if share < k.converged_share:
-            return
-        w /= share
-        d = d[near]
-        mean = w @ d
-        if math.sqrt(float(w @ np.einsum("ij,ij->i", d - mean, d - mean))) > k.converged_std_m:
-            return
-        theta = self.particles[near, 2]
-        self._mode = np.array([self.particles[j, 0] + mean[0], self.particles[j, 1] + mean[1],
-                               math.atan2(float(w @ np.sin(theta)), float(w @ np.cos(theta)))])
+        pose, share, std = mode_near_best(self.particles, self.log_w, 1.0)  # log_w is normalised here
+        self._mode = pose if share >= k.converged_share and std <= k.converged_std_m else None
 
     def _resample(self, scan: Scan) -> None:
         c = self.cfg

@@ -142,3 +142,58 @@ def estimate_pose(poses: np.ndarray, weights: np.ndarray, bin_xy: float = 0.5,
     members = labels == best
     pose, cov = weighted_pose(poses[members], w[members])
     return PoseEstimate(pose, cov, float(mass[best]), n)
+
+
+def _mode_sums_numpy(poses: np.ndarray, log_w: np.ndarray, radius: float) -> tuple[int, np.ndarray]:
+    """(index of the heaviest particle, [weight, sum w dx, sum w dy, sum w |d|^2, sum w sin, sum w cos] over the
+    particles within `radius` of it): the numpy twin of `_mode_sums`."""
+    j = int(np.argmax(log_w))
+    d = poses[:, :2] - poses[j, :2]
+    d2 = np.einsum("ij,ij->i", d, d)
+    near = d2 < radius * radius
+    w = np.exp(log_w[near])
+    th = poses[near, 2]
+    return j, np.array([w.sum(), w @ d[near, 0], w @ d[near, 1], w @ d2[near], w @ np.sin(th), w @ np.cos(th)])
+
+
+try:
+    from numba import njit as _njit
+
+    @_njit(cache=True, nogil=True)
+    def _mode_sums(poses, log_w, radius):  # pragma: no cover - compiled; twin: _mode_sums_numpy
+        j = 0
+        for i in range(1, log_w.shape[0]):
+            if log_w[i] > log_w[j]:
+                j = i
+        x0, y0, r2 = poses[j, 0], poses[j, 1], radius * radius
+        out = np.zeros(6)
+        for i in range(poses.shape[0]):
+            dx, dy = poses[i, 0] - x0, poses[i, 1] - y0
+            d2 = dx * dx + dy * dy
+            if d2 < r2:
+                w = math.exp(log_w[i])
+                out[0] += w
+                out[1] += w * dx
+                out[2] += w * dy
+                out[3] += w * d2
+                out[4] += w * math.sin(poses[i, 2])
+                out[5] += w * math.cos(poses[i, 2])
+        return j, out
+except ImportError:  # pragma: no cover
+    _mode_sums = _mode_sums_numpy
+
+
+def mode_near_best(poses: np.ndarray, log_w: np.ndarray, radius: float = 1.0) -> tuple[np.ndarray, float, float]:
+    """The belief's mode: the weighted mean of the particles within `radius` (m) of the heaviest one.
+
+    `log_w` must be normalised (the weights are exp(log_w), summing to 1). Returns (pose (3,), the weight
+    those particles hold, their position std in m). One pass over the particles (the filter asks after
+    every measurement).
+    """
+    j, s = _mode_sums(np.ascontiguousarray(poses, dtype=np.float64), np.ascontiguousarray(log_w, dtype=np.float64),
+                      float(radius))
+    share = float(s[0])
+    mx, my = s[1] / share, s[2] / share
+    std = math.sqrt(max(s[3] / share - mx * mx - my * my, 0.0))
+    pose = np.array([poses[j, 0] + mx, poses[j, 1] + my, math.atan2(s[4], s[5])])
+    return pose, share, std

@@ -95,6 +95,41 @@ def field_sum(poses: np.ndarray, bx: np.ndarray, by: np.ndarray, field: np.ndarr
 
 
 @njit(cache=True, fastmath=True, nogil=True)
+def _field_sums_numba(poses, bx, by, left_out, field, inv_res, ox, oy, fit, total):  # pragma: no cover - compiled
+    h2, w2 = field.shape
+    for i in range(poses.shape[0]):
+        frame = _pose_frame(poses[i], inv_res, ox, oy)
+        acc_in = 0.0
+        acc_out = 0.0
+        for b in range(bx.shape[0]):
+            iy, ix = _endpoint_cell(frame, bx[b], by[b], inv_res, h2, w2)
+            if left_out[b]:
+                acc_out += field[iy, ix]
+            else:
+                acc_in += field[iy, ix]
+        fit[i] = acc_in
+        total[i] = acc_in + acc_out
+
+
+def field_sums(poses: np.ndarray, bx: np.ndarray, by: np.ndarray, left_out: np.ndarray | None, field: np.ndarray,
+               resolution: float, origin: tuple[float, float], backend: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """`field_sum` over the beams not `left_out` (bool per beam; None: none) and over all of them, in one pass."""
+    if left_out is None or not left_out.any():
+        total = field_sum(poses, bx, by, field, resolution, origin, backend)
+        return total, total
+    if backend == "numpy" or (backend == "auto" and not HAVE_NUMBA):
+        fit = field_sum_numpy(np.ascontiguousarray(poses, dtype=np.float64), bx[~left_out], by[~left_out], field,
+                              resolution, origin)
+        return fit, fit + field_sum_numpy(np.ascontiguousarray(poses, dtype=np.float64), bx[left_out], by[left_out],
+                                          field, resolution, origin)
+    fit, total = np.empty(len(poses)), np.empty(len(poses))
+    _field_sums_numba(np.ascontiguousarray(poses, dtype=np.float64), np.ascontiguousarray(bx, dtype=np.float64),
+                      np.ascontiguousarray(by, dtype=np.float64), np.ascontiguousarray(left_out, dtype=np.bool_),
+                      field, 1.0 / resolution, float(origin[0]), float(origin[1]), fit, total)
+    return fit, total
+
+
+@njit(cache=True, fastmath=True, nogil=True)
 def _beam_agreement_numba(poses, bx, by, distance, near, inv_res, ox, oy, agree):  # pragma: no cover - compiled
     h2, w2 = distance.shape
     for i in range(poses.shape[0]):

@@ -13,14 +13,17 @@ bins wrap: -179 and +179 degrees are neighbours of the same bin ring, not the tw
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
 from scipy.stats import norm
 
 
+@functools.lru_cache(maxsize=16)
 def kld_z(delta: float) -> float:
-    """z_{1-delta}: the standard normal quantile KLD-sampling's bound uses."""
+    """z_{1-delta}: the standard normal quantile KLD-sampling's bound uses (memoised: scipy's ppf costs about
+    0.3 ms a call, a tenth of a filter update)."""
     return float(norm.ppf(1.0 - delta))
 
 

@@ -60,11 +60,21 @@ class SensorResult:
     through_share: float = 0.0  # of the beams, those a settled belief sees pass its walls (`settled_view`)
 
 
+@functools.lru_cache(maxsize=64)
 def subsample(n_beams: int, max_beams: int) -> np.ndarray:
-    """Indices of at most max_beams beams spread evenly over the scan, first and last included."""
-    if n_beams <= max_beams:
-        return np.arange(n_beams)
-    return np.unique(np.round(np.linspace(0, n_beams - 1, max_beams)).astype(np.int64))
+    """Indices of at most max_beams beams spread evenly over the scan, first and last included (read-only:
+    memoised, every scan of a laser asks the same)."""
+    idx = np.arange(n_beams) if n_beams <= max_beams else np.unique(
+        np.round(np.linspace(0, n_beams - 1, max_beams)).astype(np.int64))
+    idx.flags.writeable = False
+    return idx
+
+
+def subsampled(scan: Scan, max_beams: int) -> tuple[np.ndarray, np.ndarray]:
+    """(ranges as float64, angles) of the beams `subsample` keeps, before any validity test."""
+    idx = subsample(len(scan.ranges), max_beams)
+    return (np.asarray(scan.ranges, dtype=np.float64)[idx],
+            scan.angle_min + scan.angle_increment * idx.astype(np.float64))
 
 
 def laser_poses(map_from_base: np.ndarray, base_from_laser: tuple[float, float, float]) -> np.ndarray:
@@ -92,11 +102,13 @@ class LikelihoodFieldModel:
 
     def beams(self, scan: Scan) -> tuple[np.ndarray, np.ndarray]:
         """(ranges, angles) of the used beams: subsampled, finite, in [range_min, range_max)."""
-        idx = subsample(len(scan.ranges), self.cfg.max_beams)
-        r = np.asarray(scan.ranges, dtype=np.float64)[idx]
-        a = scan.angles[idx]
-        ok = np.isfinite(r) & (r >= self.cfg.range_min) & (r < min(scan.range_max, self.range_max))
+        r, a = subsampled(scan, self.cfg.max_beams)
+        ok = self._used(r, scan)
         return r[ok], a[ok]
+
+    def _used(self, r: np.ndarray, scan: Scan) -> np.ndarray:
+        """Which subsampled readings `beams` keeps."""
+        return np.isfinite(r) & (r >= self.cfg.range_min) & (r < min(scan.range_max, self.range_max))
 
     def evaluate(self, particles: np.ndarray, scan: Scan, settled: np.ndarray | None = None) -> SensorResult:
         return self._evaluate(particles, scan, skip=False, settled=settled)
@@ -111,20 +123,22 @@ class LikelihoodFieldModel:
         """The scan against the map's first walls seen from the base pose `settled` (x, y, theta): (the used
         beams (`beams`) ending more than `unmapped_margin_m` short of it, bool; the share of the subsampled
         beams that pass it by as much, or return nothing where it lies in range: through walls)."""
-        idx = subsample(len(scan.ranges), self.cfg.max_beams)
-        r = np.asarray(scan.ranges, dtype=np.float64)[idx]
-        a = scan.angles[idx]
+        r, a = subsampled(scan, self.cfg.max_beams)
+        short, through = self._settled_view(settled, r, a, scan)
+        return short[self._used(r, scan)], through
+
+    def _settled_view(self, settled: np.ndarray, r: np.ndarray, a: np.ndarray, scan: Scan) -> tuple[np.ndarray, float]:
+        """`settled_view` on the subsampled readings (r, a), its first part over all of them."""
         far = min(scan.range_max, self.range_max)
-        valid = ~np.isnan(r) & ~np.isneginf(r) & ~(r < self.cfg.range_min)
         laser = laser_poses(np.asarray(settled, dtype=np.float64).reshape(1, 3), self.base_from_laser)
         expected = kernels.cast_rays(laser, a, self.map.occupied, self.safe, self.map.resolution,
                                      (self.map.origin_x, self.map.origin_y), self.range_max)[0]
         m = self.cfg.unmapped_margin_m
-        returned = valid & (r < far)
-        seen = np.minimum(np.where(returned, r, far), far)
-        through = valid & (expected < far - m) & (seen > expected + m)
-        used = np.isfinite(r) & (r >= self.cfg.range_min) & (r < far)  # what `beams` keeps, in its order
-        return (r < expected - m)[used], float(through.sum() / max(int(valid.sum()), 1))
+        with np.errstate(invalid="ignore"):  # NaN readings compare False: neither short nor through
+            valid = ~np.isnan(r) & (r >= self.cfg.range_min)  # -inf is below range_min
+            seen = np.where(r < far, r, far)  # no return (+inf, >= range_max): seen to the range limit
+            through = valid & (expected < far - m) & (seen > expected + m)
+            return r < expected - m, float(through.sum() / max(int(valid.sum()), 1))
 
     def evaluate_skipping(self, particles: np.ndarray, scan: Scan, settled: np.ndarray | None = None) -> SensorResult:
         """`evaluate` with nav2 amcl's beam skipping (`cfg.beam_skip_*`): a beam whose endpoint lies within
@@ -138,7 +152,9 @@ class LikelihoodFieldModel:
 
     def _evaluate(self, particles: np.ndarray, scan: Scan, *, skip: bool,
                   settled: np.ndarray | None = None) -> SensorResult:
-        r, a = self.beams(scan)
+        r_all, a_all = subsampled(scan, self.cfg.max_beams)
+        used = self._used(r_all, scan)
+        r, a = r_all[used], a_all[used]
         n = len(particles)
         if len(r) == 0:  # nothing seen: the scan says nothing about the pose
             return SensorResult(np.zeros(n), np.ones(n), 0, 0)
@@ -146,17 +162,14 @@ class LikelihoodFieldModel:
         bx, by, origin = r * np.cos(a), r * np.sin(a), (self.map.origin_x, self.map.origin_y)
         unmapped, through = None, 0.0
         if settled is not None and self.cfg.unmapped_margin_m is not None:
-            unmapped, through = self.settled_view(settled, scan)
-        if unmapped is None or not unmapped.any():
-            total = kernels.field_sum(poses, bx, by, self.field, self.map.resolution, origin, backend=self.backend)
-            rel, judged = np.exp(total / len(r) - self.log_best), len(r)
-        else:  # two disjoint passes: the same work as one
-            fit = kernels.field_sum(poses, bx[~unmapped], by[~unmapped], self.field, self.map.resolution, origin,
-                                    backend=self.backend)
-            total = fit + kernels.field_sum(poses, bx[unmapped], by[unmapped], self.field, self.map.resolution,
-                                            origin, backend=self.backend)
-            judged = int((~unmapped).sum())
-            rel = np.exp(fit / judged - self.log_best) if judged else np.ones(n)
+            short, through = self._settled_view(settled, r_all, a_all, scan)
+            unmapped = short[used]
+        # One pass: the sum over the beams that judge the pose (all but a settled belief's unmapped ones)
+        # and over all of them.
+        fit, total = kernels.field_sums(poses, bx, by, unmapped, self.field, self.map.resolution, origin,
+                                        backend=self.backend)
+        judged = len(r) if unmapped is None else len(r) - int(unmapped.sum())
+        rel = np.exp(fit / judged - self.log_best) if judged else np.ones(n)
         keep = None
         if skip:
             agree = kernels.beam_agreement(poses, bx, by, self.map.distance_padded, self.cfg.beam_skip_distance,
@@ -168,8 +181,11 @@ class LikelihoodFieldModel:
                 keep = None if unmapped is None else ~unmapped
         if keep is None or keep.all():
             return SensorResult(total / self.cfg.temperature, rel, len(r), judged, through)
-        kept = kernels.field_sum(poses, bx[keep], by[keep], self.field, self.map.resolution, origin,
-                                 backend=self.backend)
+        if unmapped is not None and np.array_equal(keep, ~unmapped):
+            kept = fit
+        else:
+            kept = kernels.field_sum(poses, bx[keep], by[keep], self.field, self.map.resolution, origin,
+                                     backend=self.backend)
         return SensorResult(kept / self.cfg.temperature, rel, int(keep.sum()), judged, through)
 
 
@@ -227,9 +243,7 @@ class BeamModel:
 
     def beams(self, scan: Scan) -> tuple[np.ndarray, np.ndarray]:
         """(ranges, angles) of the used beams; +inf and readings >= range_max become max-range readings."""
-        idx = subsample(len(scan.ranges), self.cfg.max_beams)
-        r = np.asarray(scan.ranges, dtype=np.float64)[idx]
-        a = scan.angles[idx]
+        r, a = subsampled(scan, self.cfg.max_beams)
         r = np.where(np.isposinf(r), self.range_max, r)
         ok = np.isfinite(r) & (r >= self.cfg.range_min)
         return np.minimum(r[ok], self.range_max), a[ok]

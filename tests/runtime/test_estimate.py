@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.runtime.estimate import cluster_labels, estimate_pose, weighted_pose
+from pipeline.runtime.estimate import _mode_sums_numpy, cluster_labels, estimate_pose, mode_near_best, weighted_pose
 from pipeline.runtime.sampling import pose_cells
 
 
@@ -63,3 +63,28 @@ def test_compiled_labelling_matches_the_scipy_twin():
     # The same partition, whatever the label numbers.
     pairs = set(zip(fast.tolist(), slow.tolist(), strict=True))
     assert len(pairs) == n_fast
+
+
+def test_mode_near_best_is_the_weighted_mean_within_a_metre_of_the_heaviest_particle():
+    rng = np.random.default_rng(6)
+    near = np.column_stack([rng.normal(2.0, 0.2, 400), rng.normal(-1.0, 0.2, 400), rng.normal(3.1, 0.05, 400)])
+    far = np.column_stack([rng.uniform(-20, 20, 600), rng.uniform(-20, 20, 600), rng.uniform(-3, 3, 600)])
+    poses = np.vstack([near, far])
+    w = rng.random(1000) * np.r_[np.full(400, 3.0), np.ones(600)]
+    w[7] = 10.0  # the heaviest particle, one of the cluster
+    log_w = np.log(w / w.sum())
+    pose, share, std = mode_near_best(poses, log_w, 1.0)
+    # Brute force: the members by an explicit loop, their weighted mean and std.
+    members = [i for i in range(1000) if math.hypot(*(poses[i, :2] - poses[7, :2])) < 1.0]
+    wm = w[members] / w.sum()
+    assert share == pytest.approx(wm.sum(), rel=1e-9)
+    wn = wm / wm.sum()
+    mean = wn @ poses[members, :2]
+    np.testing.assert_allclose(pose[:2], mean, atol=1e-9)
+    theta = math.atan2(wn @ np.sin(poses[members, 2]), wn @ np.cos(poses[members, 2]))
+    assert pose[2] == pytest.approx(theta, abs=1e-9)  # around +-pi: the circular mean, not the arithmetic one
+    spread = math.sqrt(wn @ ((poses[members, :2] - mean) ** 2).sum(axis=1))
+    assert std == pytest.approx(spread, rel=1e-6)
+    j, sums = _mode_sums_numpy(poses, log_w, 1.0)  # the numpy twin gives the same sums
+    assert j == 7
+    assert sums[0] == pytest.approx(share, rel=1e-12)

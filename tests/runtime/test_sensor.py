@@ -187,6 +187,24 @@ def test_numba_and_numpy_field_sums_agree(lmap):
     np.testing.assert_allclose(fast, twin, rtol=1e-5)
 
 
+def test_split_field_sums_are_the_sums_over_each_part(lmap):
+    rng = np.random.default_rng(5)
+    poses = np.column_stack([rng.uniform(-3, 7, 300), rng.uniform(-4, 4, 300), rng.uniform(-4, 4, 300)])
+    r, a = rng.uniform(0.1, 12, 50), rng.uniform(-2.4, 2.4, 50)
+    bx, by = r * np.cos(a), r * np.sin(a)
+    left_out = rng.random(50) < 0.3
+    field, origin = lmap.distance_padded, (lmap.origin_x, lmap.origin_y)
+    kept = kernels.field_sum(poses, bx[~left_out], by[~left_out], field, lmap.resolution, origin, backend="numpy")
+    rest = kernels.field_sum(poses, bx[left_out], by[left_out], field, lmap.resolution, origin, backend="numpy")
+    for backend in ("auto", "numpy"):
+        fit, total = kernels.field_sums(poses, bx, by, left_out, field, lmap.resolution, origin, backend=backend)
+        np.testing.assert_allclose(fit, kept, rtol=1e-5)
+        np.testing.assert_allclose(total, kept + rest, rtol=1e-5)
+    fit, total = kernels.field_sums(poses, bx, by, None, field, lmap.resolution, origin)
+    np.testing.assert_allclose(fit, kept + rest, rtol=1e-5)
+    np.testing.assert_array_equal(fit, total)
+
+
 def test_numba_and_numpy_beam_agreement_agree_with_a_brute_force_count(lmap):
     rng = np.random.default_rng(4)
     poses = np.column_stack([rng.uniform(-3, 7, 700), rng.uniform(-4, 4, 700), rng.uniform(-4, 4, 700)])
