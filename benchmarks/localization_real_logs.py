@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/localization_real_logs.py [--data data/carmen] [--out data/localize]
         [--global-trials 10] [--kidnap-trials 5] [--logs intel-corrected aces-corrected ...] [--set KEY=VALUE]
+        [--modes tracking global kidnap kidnap+candidates]
 
 Needs the logs ingested first (`siteloc ingest-log` or `make demo`, which writes data/carmen/<log>/).
 For every log it runs `siteloc localize`'s library function three ways with the `demo` config:
@@ -29,6 +30,9 @@ from pipeline.localize import run_localize  # noqa: E402
 LOGS = ["intel-corrected", "aces-corrected", "csail-corrected", "fhw-corrected", "freiburg-079-corrected"]
 
 
+MODES = ("tracking", "global", "kidnap", "kidnap+candidates")
+
+
 def kidnap_steps(n_steps: int) -> list[int]:
     return [n_steps // 3, (2 * n_steps) // 3]
 
@@ -40,6 +44,7 @@ def main() -> None:
     ap.add_argument("--logs", nargs="*", default=LOGS)
     ap.add_argument("--global-trials", type=int, default=10)
     ap.add_argument("--kidnap-trials", type=int, default=5)
+    ap.add_argument("--modes", nargs="*", default=list(MODES), choices=MODES, help="which replays (default: all)")
     ap.add_argument("--config", default="demo")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override, as the CLI's --set (e.g. filter.sensor.beam_skip=false)")
@@ -59,6 +64,8 @@ def main() -> None:
                  ("kidnap", "pose", args.kidnap_trials, kidnap_steps(n_steps)),
                  ("kidnap+candidates", "candidates", args.kidnap_trials, kidnap_steps(n_steps))]
         for mode, init, trials, kid in modes:
+            if mode not in args.modes:
+                continue
             t0 = time.perf_counter()
             out = run_localize(cfg, inputs={"data": data}, outputs={"out": args.out / log / mode}, init=init,
                                trials=trials, kidnap_at=kid, force=True, progress=False)
