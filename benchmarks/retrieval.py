@@ -26,7 +26,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from pipeline.machine import machine_info  # noqa: E402
-from pipeline.retrieval.search import Database, ExactIndex, FaissIndex, retrieve  # noqa: E402
+from pipeline.config import IndexParams  # noqa: E402
+from pipeline.retrieval.index import make_index  # noqa: E402
+from pipeline.retrieval.search import Database, ExactIndex, retrieve  # noqa: E402
 from pipeline.retrieval.whitening import l2_normalize  # noqa: E402
 
 
@@ -86,18 +88,18 @@ def scaling(dim: int, max_db: int, hnsw_max: int) -> None:
         t_np = _timed(lambda e=exact: e.search(queries, 50), 3) / len(queries)
         row = f"{n:>10} {t_np * 1e3:>12.3f}"
         if have_faiss:
-            flat = FaissIndex(x)
+            flat = make_index("faiss", x)
             t_flat = _timed(lambda f=flat: f.search(queries, 50), 3) / len(queries)
             row += f" {t_flat * 1e3:>11.3f} {t_np / t_flat:>6.2f}"
             truth = exact.search(queries, 50)[1]
-            approximate = {"hnsw": {"hnsw_m": 32} if n <= hnsw_max else None,
-                           "ivf": {"ivf_lists": int(4 * np.sqrt(n))}}
-            for kwargs in approximate.values():
-                if kwargs is None:
+            approximate = {"hnsw": IndexParams(hnsw_m=32, hnsw_ef_search=64) if n <= hnsw_max else None,
+                           "ivf_flat": IndexParams(ivf_lists=int(4 * np.sqrt(n)), ivf_nprobe=16)}
+            for kind, params in approximate.items():
+                if params is None:
                     row += f" {'-':>8} {'-':>6} {'-':>7}"
                     continue
                 t0 = time.perf_counter()
-                index = FaissIndex(x, **kwargs)
+                index = make_index(kind, x, params)
                 build = time.perf_counter() - t0
                 t_a = _timed(lambda a=index: a.search(queries, 50), 3) / len(queries)
                 got = index.search(queries, 50)[1]

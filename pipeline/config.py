@@ -387,6 +387,23 @@ class DetectorConfig(Strict):
     seed: int = 0
 
 
+class IndexParams(Strict):
+    """`retrieval.index_params`: build and search settings of the approximate first-stage indexes
+    (pipeline.retrieval.index; recall and latency: benchmarks/scale.py)."""
+
+    hnsw_m: int = Field(32, ge=4, description="hnsw: links per node (memory: about 2 x 4 x hnsw_m bytes per image)")
+    hnsw_ef_construction: int = Field(80, ge=8, description="hnsw: candidates kept while building the graph")
+    hnsw_ef_search: int = Field(128, ge=1, description="hnsw: candidates kept while searching (at least top_n)")
+    ivf_lists: int | None = Field(None, ge=1, description="ivf_*: k-means cells (null: 4 sqrt(N), at least 39 "
+                                  "database images per cell)")
+    ivf_nprobe: int = Field(32, ge=1, description="ivf_*: cells visited per query")
+    pq_bytes: int | None = Field(None, ge=1, description="ivf_pq: bytes per vector, one 8-bit sub-quantiser each; "
+                                 "must divide the descriptor dimension (null: the largest divisor up to half of it)")
+    refine: int = Field(4, ge=1, description="ivf_pq: re-sort the refine x top_n nearest by code by their exact "
+                        "distance (1: off)")
+    seed: int = Field(0, description="k-means sample and initialisation of the ivf_* cells")
+
+
 class RetrievalConfig(Strict):
     """`siteloc extract`, `build-index`, `query`, `evaluate-retrieval` (seed 000 sections 3.1.2, 4.1, 4.2)."""
 
@@ -412,7 +429,11 @@ class RetrievalConfig(Strict):
     query_regions: int = Field(10, ge=1, description="query regions matched when re-ranking (detections first)")
     candidate_weights: tuple[float, ...] = Field((4.0, 3.0, 2.0, 1.0), min_length=1,
                                                  description="weights of the Top-K candidates (paper: 4:3:2:1)")
-    index: Literal["exact", "faiss"] = Field("exact", description="nearest-neighbour search of the first stage")
+    index: Literal["exact", "faiss", "hnsw", "ivf_flat", "ivf_pq"] = Field(
+        "exact", description="nearest-neighbour search of the first stage: exact (numpy), faiss (faiss's exact flat "
+        "index), hnsw, ivf_flat, ivf_pq (approximate, for 10^5 images and more: index_params; build-index saves "
+        "them beside the database); docs/retrieval.md#large-databases")
+    index_params: IndexParams = Field(default_factory=IndexParams)
     backbone: Literal["detector", "lite0_s16", "lite0_s32", "vgg16", "checkpoint"] = Field(
         "detector", description="the map IPA and RPA pool (regions: always the detector's): detector (its own "
         "trunk), lite0_s16 / lite0_s32 (ImageNet EfficientNet-Lite0 at stride 16: 112-d, 32: 320-d), vgg16 (ImageNet "

@@ -164,7 +164,7 @@ def query(
             raise InputError("images not found", [Problem(str(p), "no such file") for p in bad])
         from pipeline.retrieval.backbones import check_backbone, load_backbone, recorded_backbone
 
-        rdb = load_database(index, index=r.index)
+        rdb = load_database(index, index=r.index, params=r.index_params)
         det = load_detector(model, device=r.device)
         backbone = load_backbone(r.backbone, r.backbone_weights)  # the one the index was extracted with, or refused
         check_backbone(recorded_backbone(index), backbone, index)

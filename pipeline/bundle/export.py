@@ -36,7 +36,7 @@ from pipeline.errors import InputError, Problem
 from pipeline.runtime.bundle import MANIFEST, SCHEMA_VERSION, sha256_of
 
 DB_FILES = ("database_ipa.parquet", "database_rpa.parquet", "catalog.parquet", "report.json")
-OPTIONAL_DB_FILES = ("ipa_whitening.npz", "rpa_whitening.npz", "config.yaml")
+OPTIONAL_DB_FILES = ("ipa_whitening.npz", "rpa_whitening.npz", "ipa_index.faiss", "config.yaml")
 SEQUENCE_FILES = ("weights.safetensors", "config.json", "database.parquet", "whitening.npz")
 PRIOR_FILES = ("prior.json",)
 

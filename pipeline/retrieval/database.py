@@ -69,8 +69,13 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
         for name, w in (("ipa", w_ipa), ("rpa", w_rpa)):
             if w is not None:
                 w.save(tmp / f"{name}_whitening.npz")
+        if r.index in SAVED_KINDS:  # a graph or inverted file of 10^6 images takes minutes: built once, here
+            from pipeline.retrieval.index import INDEX_FILE, make_index
+
+            make_index(r.index, ipa, r.index_params).save(tmp / INDEX_FILE)
         write_text_atomic(tmp / "report.json", json.dumps({
             "images": len(ids), "regions": int(len(rpa)), "whitening": r.whitening,
+            "index": r.index, "index_params": r.index_params.model_dump(),
             "ipa_dim": int(ipa.shape[1]), "rpa_dim": int(rpa.shape[1]),
             "ipa_dim_limited_by": None if w_ipa is None else str(w_ipa.cap_reason_),
             "rpa_dim_limited_by": None if w_rpa is None else str(w_rpa.cap_reason_),
@@ -79,8 +84,14 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
     return out
 
 
-def load_database(path: Path, *, index: str = "exact") -> RetrievalDatabase:
-    from pipeline.retrieval.search import Database, make_index, region_offsets
+SAVED_KINDS = ("hnsw", "ivf_flat", "ivf_pq")  # the first-stage indexes build-index saves (ipa_index.faiss)
+
+
+def load_database(path: Path, *, index: str | None = None, params=None) -> RetrievalDatabase:
+    """The database of `build-index` at `path`, searched with `index` (null: the one it was built with, read
+    from its ipa_index.faiss when saved; another kind is built now, with `params`)."""
+    from pipeline.retrieval.index import INDEX_FILE, FaissIndex, make_index
+    from pipeline.retrieval.search import Database, region_offsets
     from pipeline.retrieval.whitening import LearnedWhitening, PCAWhitening
 
     path = Path(path)
@@ -102,7 +113,18 @@ def load_database(path: Path, *, index: str = "exact") -> RetrievalDatabase:
     whitening = {"pca": PCAWhitening, "learned": LearnedWhitening}.get(settings["whitening"])
     w_ipa = whitening.load(path / "ipa_whitening.npz") if whitening else None
     w_rpa = PCAWhitening.load(path / "rpa_whitening.npz") if whitening else None
-    return RetrievalDatabase(db, make_index(index, db.ipa), w_ipa, w_rpa, settings)
+    built = settings.get("index", "exact")
+    kind = index or built
+    if kind == built and kind in SAVED_KINDS and (path / INDEX_FILE).is_file():
+        from pipeline.config import IndexParams
+
+        saved = IndexParams(**settings["index_params"])
+        if params is not None:  # search-time settings may change; the build's stay as saved
+            saved = saved.model_copy(update={k: getattr(params, k) for k in ("hnsw_ef_search", "ivf_nprobe", "refine")})
+        first = FaissIndex.load(path / INDEX_FILE, db.ipa, kind, saved)
+    else:
+        first = make_index(kind, db.ipa, params)
+    return RetrievalDatabase(db, first, w_ipa, w_rpa, settings)
 
 
 def query_database(rdb: RetrievalDatabase, ipa: np.ndarray, regions: np.ndarray | None, *, top_n: int = 50,

@@ -125,7 +125,7 @@ def rank_all(ex: Extracted, db: np.ndarray, qx: Extracted, queries: np.ndarray, 
 
     w_ipa, w_rpa = fit_whitenings(ex, db, whitening, cfg)
     database = whitened_database(ex, db, w_ipa, w_rpa)
-    index = make_index(cfg.index, database.ipa)
+    index = make_index(cfg.index, database.ipa, cfg.index_params)
     _, first = index.search(_apply(w_ipa, qx.ipa[queries]), cfg.top_n)
     reranked = np.empty_like(first)
     for k, q in enumerate(queries):

@@ -3,7 +3,7 @@
 numpy only (the runtime imports this; no torch). Descriptors arrive whitened and l2-normalised.
 
 1. First stage: the `top_n` database images nearest the query's IPA descriptor in Euclidean distance,
-   through an `Index` (`ExactIndex`: one matrix product; `FaissIndex`: faiss, for large databases).
+   through an index of `pipeline.retrieval.index` (exact by default; faiss's flat, HNSW or IVF for large ones).
 2. Re-ranking: each of the Top-N is scored by region matching. The rule turning several query regions
    into one score: for every query region, its best match among the database image's regions (the
    largest cosine similarity, i.e. the smallest Euclidean distance between unit vectors, as the paper
@@ -19,71 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
-class ExactIndex:
-    """Brute-force Euclidean search: ||q - x||^2 = 2 - 2 q.x for unit vectors, done as one product."""
-
-    name = "exact"
-
-    def __init__(self, vectors: np.ndarray):
-        self.vectors = np.ascontiguousarray(vectors, dtype=np.float32)
-        self.sq = np.einsum("ij,ij->i", self.vectors, self.vectors)
-
-    def __len__(self) -> int:
-        return len(self.vectors)
-
-    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """(squared distances, indices), each (B, k), nearest first."""
-        q = np.atleast_2d(np.asarray(queries, dtype=np.float32))
-        k = min(k, len(self))
-        d = self.sq[None, :] - 2.0 * q @ self.vectors.T + np.einsum("ij,ij->i", q, q)[:, None]
-        part = np.argpartition(d, k - 1, axis=1)[:, :k] if k < len(self) else np.tile(np.arange(len(self)), (len(q), 1))
-        dk = np.take_along_axis(d, part, axis=1)
-        order = np.lexsort((part, dk), axis=1)  # by distance, ties by database order
-        return np.take_along_axis(dk, order, axis=1), np.take_along_axis(part, order, axis=1)
-
-
-class FaissIndex:
-    """faiss (`pip install faiss-cpu`): exact `IndexFlatL2`; or, for very large databases, approximate:
-    HNSW (`hnsw_m` links per node) or an inverted file (`ivf_lists` k-means cells, `nprobe` visited)."""
-
-    name = "faiss"
-
-    def __init__(self, vectors: np.ndarray, *, hnsw_m: int | None = None, ivf_lists: int | None = None,
-                 nprobe: int = 16):
-        try:
-            import faiss
-        except ImportError:
-            from pipeline.errors import SitelocError
-
-            raise SitelocError("retrieval.index=faiss needs faiss: pip install faiss-cpu") from None
-        v = np.ascontiguousarray(vectors, dtype=np.float32)
-        if hnsw_m:
-            self.index = faiss.IndexHNSWFlat(v.shape[1], hnsw_m)
-        elif ivf_lists:
-            self.index = faiss.IndexIVFFlat(faiss.IndexFlatL2(v.shape[1]), v.shape[1], ivf_lists)
-            # k-means on a sample: faiss itself warns above 256 points per cell and gains nothing
-            sample = v[np.random.default_rng(0).choice(len(v), min(len(v), 256 * ivf_lists), replace=False)]
-            self.index.train(sample)
-            self.index.nprobe = nprobe
-        else:
-            self.index = faiss.IndexFlatL2(v.shape[1])
-        self.index.add(v)
-        self.hnsw = bool(hnsw_m)
-        self.n = len(v)
-
-    def __len__(self) -> int:
-        return self.n
-
-    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        if self.hnsw:  # the beam must be at least as wide as the list asked for (faiss' default is 16)
-            self.index.hnsw.efSearch = max(2 * k, 64)
-        d, i = self.index.search(np.ascontiguousarray(np.atleast_2d(queries), dtype=np.float32), min(k, self.n))
-        return d, i
-
-
-def make_index(kind: str, vectors: np.ndarray):
-    return FaissIndex(vectors) if kind == "faiss" else ExactIndex(vectors)
+from pipeline.retrieval.index import ExactIndex, FaissIndex, make_index  # noqa: F401  (the first stage)
 
 
 @dataclass

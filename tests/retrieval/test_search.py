@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.retrieval.search import Database, ExactIndex, FaissIndex, region_score, rerank, retrieve
+from pipeline.retrieval.search import Database, ExactIndex, region_score, rerank, retrieve
 from pipeline.retrieval.whitening import l2_normalize
 
 
@@ -25,23 +25,6 @@ def test_exact_index_matches_brute_force():
     np.testing.assert_array_equal(i, brute)
     np.testing.assert_allclose(d, np.take_along_axis(((q[:, None, :] - db.ipa[None]) ** 2).sum(-1), brute, 1),
                                atol=1e-5)
-
-
-def test_faiss_index_agrees_with_exact():
-    pytest.importorskip("faiss")
-    db = _db()
-    q = l2_normalize(np.random.default_rng(6).normal(size=(5, 24)))
-    np.testing.assert_array_equal(FaissIndex(db.ipa).search(q, 8)[1], ExactIndex(db.ipa).search(q, 8)[1])
-
-
-def test_faiss_inverted_file_probing_every_cell_is_exact():
-    pytest.importorskip("faiss")
-    db = _db(n=400)
-    q = l2_normalize(np.random.default_rng(7).normal(size=(5, 24)))
-    want = ExactIndex(db.ipa).search(q, 8)[1]
-    np.testing.assert_array_equal(FaissIndex(db.ipa, ivf_lists=4, nprobe=4).search(q, 8)[1], want)
-    some = FaissIndex(db.ipa, ivf_lists=16, nprobe=1).search(q, 8)[1]  # one cell of 16: not every neighbour
-    assert (some >= -1).all() and not np.array_equal(some, want)
 
 
 def test_rerank_is_a_permutation_ordered_by_the_region_rule():
