@@ -34,7 +34,7 @@ DESCRIPTORS is the output of `siteloc extract`. The database is its `train` stop
 pca (PCA-whitening, the paper's), learned (supervised, from image pairs within retrieval.pair_distance m
 and retrieval.pair_heading_deg degrees, Radenovic et al. 2016) or none. The dimension is capped by what
 the data supports (report.json says which limit applied). Writes database_ipa.parquet,
-database_rpa.parquet, catalog.parquet, ipa_whitening.npz, rpa_whitening.npz (arrays, no pickles),
+database_rpa.arrow, catalog.parquet, ipa_whitening.npz, rpa_whitening.npz (arrays, no pickles),
 report.json, config.yaml.
 
 Example: siteloc build-index data/reference/descriptors --out data/reference/index

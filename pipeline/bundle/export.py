@@ -35,8 +35,9 @@ from pipeline.config import SitelocConfig
 from pipeline.errors import InputError, Problem
 from pipeline.runtime.bundle import MANIFEST, SCHEMA_VERSION, sha256_of
 
-DB_FILES = ("database_ipa.parquet", "database_rpa.parquet", "catalog.parquet", "report.json")
-OPTIONAL_DB_FILES = ("ipa_whitening.npz", "rpa_whitening.npz", "ipa_index.faiss", "config.yaml")
+DB_FILES = ("database_ipa.parquet", "catalog.parquet", "report.json")
+RPA_FILES = ("database_rpa.arrow", "database_rpa.parquet")  # one of them: .parquet before 2026-12-06
+OPTIONAL_DB_FILES = (*RPA_FILES, "ipa_whitening.npz", "rpa_whitening.npz", "ipa_index.faiss", "config.yaml")
 SEQUENCE_FILES = ("weights.safetensors", "config.json", "database.parquet", "whitening.npz")
 PRIOR_FILES = ("prior.json",)
 
@@ -216,7 +217,8 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
     data, model, index = Path(inputs["data"]), Path(inputs["model"]), Path(inputs["index"])
     _require([data / "map.yaml"], "point --data at the output of `siteloc ingest`")
     _require([model / "weights.safetensors", model / "config.json"], "point MODEL at `siteloc train-detector`'s output")
-    _require([index / f for f in DB_FILES], "point INDEX at `siteloc build-index`'s output")
+    rpa = next((f for f in RPA_FILES if (index / f).is_file()), RPA_FILES[0])
+    _require([index / f for f in (*DB_FILES, rpa)], "point INDEX at `siteloc build-index`'s output")
     if inputs.get("sequence") is not None:  # checked before any export work starts
         _require([Path(inputs["sequence"]) / f for f in SEQUENCE_FILES],
                  "point --sequence at `siteloc train-sequence`'s output")

@@ -1,6 +1,8 @@
 """Parquet tables of the pipeline, each with a name and a schema version in its metadata.
 
-Readers refuse a table of another kind or of an unknown major version, and name the file. The
+A path ending in `.arrow` is an Arrow IPC file instead (uncompressed, one record batch): the same table,
+read memory-mapped, so a database's region descriptors are paged in as a query touches them instead of
+loaded whole. Readers refuse a table of another kind or of an unknown major version, and name the file. The
 column contracts are the ones in ARCHITECTURE.md; `docs/data-formats.md` documents them for users.
 """
 
@@ -212,10 +214,12 @@ def descriptor_array(matrix) -> pa.FixedSizeListArray:
 
 
 def descriptor_matrix(table: pa.Table):
-    """The `descriptor` column of a table as an (N, D) float32 numpy array (no copy when possible)."""
+    """The `descriptor` column of a table as an (N, D) float32 numpy array (no copy when possible: a view on a
+    memory-mapped `.arrow` table, read-only)."""
     import numpy as np
 
-    col = table.column("descriptor").combine_chunks()
+    chunked = table.column("descriptor")
+    col = chunked.chunk(0) if chunked.num_chunks == 1 else chunked.combine_chunks()  # combine copies even one chunk
     size = col.type.list_size
     return np.asarray(col.values.to_numpy(zero_copy_only=False), dtype=np.float32).reshape(-1, size)
 
@@ -246,7 +250,11 @@ def write_table(path: Path, table: pa.Table, kind: str, metadata: dict[str, str]
     schema = _with_metadata(_contract(kind, table), kind, merged)
     table = table.select(schema.names).cast(schema)
     with atomic_file(Path(path), "wb") as fh:
-        pq.write_table(table, fh, compression="zstd")
+        if Path(path).suffix == ".arrow":
+            with pa.ipc.new_file(fh, schema) as writer:
+                writer.write_table(table.combine_chunks(), max_chunksize=max(table.num_rows, 1))
+        else:
+            pq.write_table(table, fh, compression="zstd")
     return Path(path)
 
 
@@ -267,10 +275,12 @@ def read_table(path: Path, kind: str) -> pa.Table:
             f"{path}: {kind} table not found",
             [Problem(str(path), "file is missing", fix="run the stage that writes it")],
         )
+    arrow = path.suffix == ".arrow"
     try:
-        table = pq.read_table(path)
+        table = pa.ipc.open_file(pa.memory_map(str(path))).read_all() if arrow else pq.read_table(path)
     except (pa.ArrowInvalid, OSError) as exc:
-        raise InputError(f"{path}: not a readable Parquet file", [Problem(str(path), str(exc))]) from None
+        raise InputError(f"{path}: not a readable {'Arrow IPC' if arrow else 'Parquet'} file",
+                         [Problem(str(path), str(exc))]) from None
     meta = table.schema.metadata or {}
     found_kind = meta.get(_KIND_KEY, b"").decode()
     version = meta.get(_VERSION_KEY, b"").decode()

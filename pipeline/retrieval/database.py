@@ -62,7 +62,7 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
         regions = tables.read_table(Path(inputs["descriptors"]) / "rpa.parquet", "rpa").take(region_rows(ex, db))
         regions = regions.set_column(regions.schema.get_field_index("descriptor"), "descriptor",
                                      tables.descriptor_array(rpa))
-        tables.write_table(tmp / "database_rpa.parquet", regions, "rpa")
+        tables.write_table(tmp / RPA_FILE, regions, "rpa")
         tables.write_table(tmp / "catalog.parquet", tables.to_table("catalog", {
             "image_id": ids, "x": ex.poses[db, 0], "y": ex.poses[db, 1], "theta": ex.poses[db, 2],
             "group": ex.groups[db], "split": ex.splits[db]}), "catalog")
@@ -84,6 +84,25 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
     return out
 
 
+RPA_FILE = "database_rpa.arrow"  # Arrow IPC: memory-mapped by load_database
+LEGACY_RPA_FILE = "database_rpa.parquet"  # databases built before 2026-12-06, still read (into RAM)
+
+
+def region_offsets_of(image_ids, region_image_ids) -> np.ndarray:
+    """`search.region_offsets` on Arrow columns, without making a Python string per region (10^8 of them at
+    10^6 images): each region's image position by pyarrow's hash lookup."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    owner = pc.index_in(region_image_ids, value_set=pa.chunked_array(image_ids).combine_chunks())
+    if owner.null_count:
+        raise ValueError("regions of unknown images")
+    owner = owner.to_numpy().astype(np.int64, copy=False)
+    if np.any(np.diff(owner) < 0):
+        raise ValueError("region rows are not grouped by image in the images' order")
+    return np.searchsorted(owner, np.arange(len(image_ids) + 1))
+
+
 SAVED_KINDS = ("hnsw", "ivf_flat", "ivf_pq")  # the first-stage indexes build-index saves (ipa_index.faiss)
 
 
@@ -91,21 +110,22 @@ def load_database(path: Path, *, index: str | None = None, params=None) -> Retri
     """The database of `build-index` at `path`, searched with `index` (null: the one it was built with, read
     from its ipa_index.faiss when saved; another kind is built now, with `params`)."""
     from pipeline.retrieval.index import INDEX_FILE, FaissIndex, make_index
-    from pipeline.retrieval.search import Database, region_offsets
+    from pipeline.retrieval.search import Database
     from pipeline.retrieval.whitening import LearnedWhitening, PCAWhitening
 
     path = Path(path)
     ipa_t = tables.read_table(path / "database_ipa.parquet", "ipa")
-    rpa_t = tables.read_table(path / "database_rpa.parquet", "rpa")
+    rpa_path = path / (RPA_FILE if (path / RPA_FILE).is_file() else LEGACY_RPA_FILE)
+    rpa_t = tables.read_table(rpa_path, "rpa")  # .arrow: memory-mapped, paged in as queries touch regions
     cat = tables.read_table(path / "catalog.parquet", "catalog").to_pydict()
     ids = ipa_t.column("image_id").to_pylist()
     try:
-        offsets = region_offsets(ids, rpa_t.column("image_id").to_pylist())
-    except (ValueError, KeyError):
+        offsets = region_offsets_of(ipa_t.column("image_id"), rpa_t.column("image_id"))
+    except ValueError:
         from pipeline.errors import InputError, Problem
 
-        raise InputError(f"{path}: database_rpa.parquet does not follow database_ipa.parquet's images",
-                         [Problem(str(path / "database_rpa.parquet"), "rows out of order or of unknown images",
+        raise InputError(f"{path}: {rpa_path.name} does not follow database_ipa.parquet's images",
+                         [Problem(str(rpa_path), "rows out of order or of unknown images",
                                   fix="re-run `siteloc build-index`")]) from None
     db = Database(ids, np.column_stack([cat["x"], cat["y"], cat["theta"]]), tables.descriptor_matrix(ipa_t),
                   tables.descriptor_matrix(rpa_t), offsets)

@@ -24,7 +24,7 @@ def test_export_writes_a_verified_bundle_and_its_archive(exported):
     cfg, _, _, index, bundle = exported
     assert bundle.name == f"{cfg.synth.site}-{cfg.export.version}" or bundle.name.endswith(f"-{cfg.export.version}")
     m = verify_bundle(bundle)
-    assert {"map/map.yaml", "map/map.pgm", "db/database_ipa.parquet", "db/database_rpa.parquet", "db/catalog.parquet",
+    assert {"map/map.yaml", "map/map.pgm", "db/database_ipa.parquet", "db/database_rpa.arrow", "db/catalog.parquet",
             "models/describer.onnx", "models/describer.json", "filter.yaml"} <= set(m["files"])
     for key in ("bundle_version", "site", "created", "code_version", "config", "provenance"):
         assert key in m
