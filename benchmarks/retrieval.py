@@ -25,8 +25,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from pipeline.machine import machine_info  # noqa: E402
 from pipeline.config import IndexParams  # noqa: E402
+from pipeline.machine import machine_info  # noqa: E402
 from pipeline.retrieval.index import make_index  # noqa: E402
 from pipeline.retrieval.search import Database, ExactIndex, retrieve  # noqa: E402
 from pipeline.retrieval.whitening import l2_normalize  # noqa: E402

@@ -16,7 +16,10 @@ told apart from the originals in the printout):
 
 For each size and index kind (`retrieval.index_params` with --set overrides): build seconds, index bytes
 per image (faiss's serialised size), ms per query (one query at a time, as the runtime asks, and a batch
-of 16), recall@50 against exact search. Prints the machine first; each kind's speed as a ratio to exact.
+of 16), recall@50 against exact search, and up to --rerank-max images the whole query (`search.retrieve`:
+first stage + RPA re-ranking of the Top-50 with the query's 10 regions) on regions memory-mapped from a
+file, as `load_database` maps database_rpa.arrow (the file just written: a warm page cache). Prints the
+machine first; each kind's speed as a ratio to exact.
 """
 
 from __future__ import annotations
@@ -34,49 +37,96 @@ sys.path.insert(0, str(REPO))
 from pipeline.machine import machine_info  # noqa: E402
 
 
-def real_descriptors(paths: list[Path]) -> tuple[np.ndarray, np.ndarray]:
-    """(database, queries) float32, whitened on the database views of every extraction together."""
-    from pipeline.io import tables
-    from pipeline.retrieval.whitening import PCAWhitening, l2_normalize
+class Real:
+    """The extractions' descriptors, whitened on their database views as build-index does: IPA of the database
+    views and of the queries; regions of each (offsets into the region matrices), queries' ordered as a query's
+    are matched (detections first, at most `query_regions`)."""
 
-    db, q = [], []
-    for path in paths:
-        ipa = tables.descriptor_matrix(tables.read_table(path / "ipa.parquet", "ipa"))
-        split = tables.read_table(path / "catalog.parquet", "catalog").column("split").to_pylist()
-        runs = np.array([s.startswith("run:") for s in split])
-        db.append(ipa[~runs])
-        q.append(ipa[runs])
-    db, q = np.vstack(db), np.vstack(q)
-    white = PCAWhitening().fit(db)
-    return (l2_normalize(white.transform(db)).astype(np.float32), l2_normalize(white.transform(q)).astype(np.float32))
+    def __init__(self, paths: list[Path], query_regions: int = 10):
+        from pipeline.io import tables
+        from pipeline.retrieval.search import query_region_order, region_offsets
+        from pipeline.retrieval.whitening import PCAWhitening, l2_normalize
+
+        ipa_db, ipa_q, rpa_db, rpa_q, off_db, off_q = [], [], [], [], [0], [0]
+        for path in paths:
+            ipa = tables.descriptor_matrix(tables.read_table(path / "ipa.parquet", "ipa"))
+            ids = tables.read_table(path / "ipa.parquet", "ipa").column("image_id").to_pylist()
+            split = tables.read_table(path / "catalog.parquet", "catalog").column("split").to_pylist()
+            rpa_t = tables.read_table(path / "rpa.parquet", "rpa")
+            rpa = tables.descriptor_matrix(rpa_t)
+            offsets = region_offsets(ids, rpa_t.column("image_id").to_pylist())
+            sources, scores = rpa_t.column("source").to_numpy(zero_copy_only=False), rpa_t.column("score").to_numpy()
+            for k, s in enumerate(split):
+                lo, hi = offsets[k], offsets[k + 1]
+                if s.startswith("run:"):
+                    ipa_q.append(ipa[k])
+                    rpa_q.append(rpa[lo:hi][query_region_order(sources[lo:hi], scores[lo:hi], query_regions)])
+                    off_q.append(off_q[-1] + len(rpa_q[-1]))
+                else:
+                    ipa_db.append(ipa[k])
+                    rpa_db.append(rpa[lo:hi])
+                    off_db.append(off_db[-1] + hi - lo)
+        w_ipa, w_rpa = PCAWhitening().fit(np.array(ipa_db)), PCAWhitening().fit(np.vstack(rpa_db))
+        self.db = l2_normalize(w_ipa.transform(np.array(ipa_db))).astype(np.float32)
+        self.queries = l2_normalize(w_ipa.transform(np.array(ipa_q))).astype(np.float32)
+        self.db_regions = l2_normalize(w_rpa.transform(np.vstack(rpa_db))).astype(np.float32)
+        self.query_regions = l2_normalize(w_rpa.transform(np.vstack(rpa_q))).astype(np.float32)
+        self.db_offsets, self.query_offsets = np.array(off_db), np.array(off_q)
 
 
 def nearest_other_distance(x: np.ndarray) -> float:
-    """Median over views of the distance to the nearest other view (exact, in blocks)."""
+    """Median over views of the distance to the nearest other view (exact)."""
     from pipeline.retrieval.index import ExactIndex
 
     d, _ = ExactIndex(x).search(x, 2)
     return float(np.median(np.sqrt(np.maximum(d[:, 1], 0.0))))
 
 
-def replicate(x: np.ndarray, n: int, how: str, rng: np.random.Generator) -> np.ndarray:
-    """n vectors: x first, then copies made by `how` (see the module) until n."""
-    from pipeline.retrieval.whitening import l2_normalize
+class Copies:
+    """Copy c of the real set (c = 1, 2, ...): `jitter` adds isotropic noise as large as the median distance
+    between a view and its nearest other view; `rotate` turns it by a Haar-random orthogonal matrix."""
 
-    out = np.empty((n, x.shape[1]), dtype=np.float32)
-    k = min(n, len(x))
-    out[:k] = x[:k]
-    sigma = nearest_other_distance(x) / np.sqrt(x.shape[1]) if how == "jitter" else 0.0
-    while k < n:
-        take = min(len(x), n - k)
-        if how == "jitter":
-            copy = x[:take] + rng.normal(scale=sigma, size=(take, x.shape[1])).astype(np.float32)
+    def __init__(self, real: np.ndarray, how: str, seed: int):
+        self.how, self.seed, self.dim = how, seed, real.shape[1]
+        self.sigma = nearest_other_distance(real) / np.sqrt(self.dim) if how == "jitter" else 0.0
+
+    def __call__(self, x: np.ndarray, c: int, salt: int = 0) -> np.ndarray:
+        from pipeline.retrieval.whitening import l2_normalize
+
+        rng = np.random.default_rng([self.seed, c, salt])
+        if self.how == "jitter":
+            y = x + rng.normal(scale=self.sigma, size=x.shape).astype(np.float32)
         else:
-            q, r = np.linalg.qr(rng.normal(size=(x.shape[1], x.shape[1])))
-            copy = x[:take] @ (q * np.sign(np.diag(r))).astype(np.float32)  # Haar-random orthogonal
-        out[k:k + take] = l2_normalize(copy).astype(np.float32)
-        k += take
+            q, r = np.linalg.qr(np.random.default_rng([self.seed, c]).normal(size=(x.shape[1], x.shape[1])))
+            y = x @ (q * np.sign(np.diag(r))).astype(np.float32)
+        return l2_normalize(y).astype(np.float32)
+
+
+def replicate(x: np.ndarray, n: int, copies: Copies) -> np.ndarray:
+    """n vectors: x first, then its copies until n."""
+    out = np.empty((n, x.shape[1]), dtype=np.float32)
+    for c, k in enumerate(range(0, n, len(x))):
+        take = min(len(x), n - k)
+        out[k:k + take] = x[:take] if c == 0 else copies(x[:take], c)
     return out
+
+
+def replicate_regions(real: Real, n: int, copies: Copies, path: Path):
+    """The regions of n database images (image j: those of real view j mod n_real, copied as its IPA is) in a
+    memory-mapped float32 file, as database_rpa.arrow is mapped; returns (matrix, offsets)."""
+    n_real = len(real.db)
+    counts = np.diff(real.db_offsets)
+    per_image = np.resize(counts, n)
+    offsets = np.concatenate([[0], np.cumsum(per_image)])
+    shape = (int(offsets[-1]), real.db_regions.shape[1])
+    out = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=shape)
+    for c, k in enumerate(range(0, n, n_real)):
+        take = min(n_real, n - k)
+        src = real.db_regions[: real.db_offsets[take]]
+        out[offsets[k]:offsets[k] + len(src)] = src if c == 0 else copies(src, c, salt=1)
+    out.flush()
+    del out
+    return np.load(path, mmap_mode="r"), offsets
 
 
 def timed_queries(index, queries: np.ndarray, k: int) -> tuple[float, float]:
@@ -101,6 +151,21 @@ def index_bytes(index) -> int | None:
     return int(faiss.serialize_index(index.index).nbytes)
 
 
+def whole_query_ms(db, index, real: Real, picks: np.ndarray, top_n: int) -> float:
+    """ms per query of `search.retrieve` (first stage + RPA re-ranking of the Top-N), one query at a time."""
+    from pipeline.retrieval.search import retrieve
+
+    def run(i):
+        lo, hi = real.query_offsets[i], real.query_offsets[i + 1]
+        retrieve(db, index, real.queries[i], real.query_regions[lo:hi], top_n=top_n)
+
+    run(picks[0])
+    t0 = time.perf_counter()
+    for i in picks:
+        run(i)
+    return (time.perf_counter() - t0) / len(picks) * 1e3
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--descriptors", type=Path, nargs="+", required=True, help="`siteloc extract` outputs")
@@ -110,27 +175,38 @@ def main() -> None:
     ap.add_argument("--queries", type=int, default=200,
                     help="query frames, drawn at random (seeded) from every extraction's run frames")
     ap.add_argument("--k", type=int, default=50, help="Top-k compared with exact search (the paper's Top-50)")
+    ap.add_argument("--rerank-max", type=int, default=100_000,
+                    help="largest size given a region file, for the whole query's time (about 45 kB an image)")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/siteloc-scale"), help="where region files go")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="retrieval.index_params overrides, e.g. --set ivf_nprobe=64")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     from pipeline.config import IndexParams
     from pipeline.retrieval.index import ExactIndex, make_index
+    from pipeline.retrieval.search import Database
 
     print("\n".join(machine_info()))
     overrides = dict(s.split("=", 1) for s in args.set)
     params = IndexParams(**{k: (None if v == "null" else int(v)) for k, v in overrides.items()})
     print(f"index params: {params.model_dump()}")
-    real, queries = real_descriptors(args.descriptors)
-    rng = np.random.default_rng(args.seed)
-    queries = queries[rng.permutation(len(queries))[:args.queries]]
-    print(f"real: {len(real)} database views, {len(queries)} queries, {real.shape[1]}-d (whitened); "
+    real = Real(args.descriptors)
+    picks = np.random.default_rng(args.seed).permutation(len(real.queries))[:args.queries]
+    queries = real.queries[picks]
+    print(f"real: {len(real.db)} database views ({len(real.db_regions)} regions), {len(real.queries)} query frames "
+          f"({len(picks)} used), IPA {real.db.shape[1]}-d, RPA {real.db_regions.shape[1]}-d (whitened); "
           f"replicated by {args.replicate}")
+    copies = Copies(real.db, args.replicate, args.seed + 1)
     print("\n| images | index | build (s) | bytes / image | ms / query (one) | ms / query (batch 16) | "
-          "speed vs exact (one) | recall@50 |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+          "speed vs exact (one) | recall@50 | whole query with re-ranking (ms) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    args.work.mkdir(parents=True, exist_ok=True)
     for n in args.sizes:
-        x = replicate(real, n, args.replicate, np.random.default_rng(args.seed + 1))
+        x = replicate(real.db, n, copies)
+        db = None
+        if n <= args.rerank_max:
+            regions, offsets = replicate_regions(real, n, copies, args.work / f"regions-{n}.npy")
+            db = Database([str(i) for i in range(n)], np.zeros((n, 3)), x, regions, offsets)
         exact = ExactIndex(x)
         truth = exact.search(queries, args.k)[1]
         base = None
@@ -144,9 +220,13 @@ def main() -> None:
             recall = np.mean([len(set(a) & set(b)) / args.k for a, b in zip(got, truth, strict=True)])
             size = index_bytes(index) if kind != "exact" else x.nbytes
             ratio = f"{base / single:.1f}x" if base else "-"
+            whole = f"{whole_query_ms(db, index, real, picks, args.k):.2f}" if db is not None else "-"
             print(f"| {n} | {kind} | {build:.1f} | {size / n:.0f} | {single:.3f} | {batch:.3f} | {ratio} | "
-                  f"{recall:.3f} |", flush=True)
+                  f"{recall:.3f} | {whole} |", flush=True)
             del index
+        if db is not None:
+            del db, regions
+            (args.work / f"regions-{n}.npy").unlink()
 
 
 if __name__ == "__main__":
