@@ -94,6 +94,10 @@ class SizedGraphPool:
             sessions[hw] = ort.InferenceSession(str(self._paths[hw]), options, providers=["CPUExecutionProvider"])
         return self._run(sessions[hw], image, self._info[hw])
 
+    def graph_files(self) -> dict[str, tuple[Path, dict]]:
+        """The graphs exported so far: "<W>x<H>" -> (file, info)."""
+        return {f"{hw[1]}x{hw[0]}": (path, self._info[hw]) for hw, path in self._paths.items()}
+
     def close(self) -> None:
         self._pool.shutdown(wait=True)
 

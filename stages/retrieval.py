@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
 
@@ -85,6 +86,11 @@ Example: siteloc train-place data/reference/ingested --out models/place
 """
 
 
+class Executor(StrEnum):
+    LOCAL = "local"
+    RAY = "ray"
+
+
 def extract(
     model: Annotated[Path, typer.Argument(help="A trained detector.", show_default=False)],
     data: Annotated[Path, typer.Argument(help="The ingested site.", show_default=False)],
@@ -93,6 +99,14 @@ def extract(
         "--reuse", show_default=False,
         help="An earlier extraction: images whose content is unchanged, described by the same detector and "
              "settings, take their rows from it (after `siteloc update`).")] = None,
+    engine: Annotated[Executor, typer.Option(
+        "--engine",
+        help="local: a pool of onnxruntime sessions in this process; ray: Ray actors, on this machine or on the "
+             "cluster at --ray-address (needs the ray extra: pip install siteloc\\[ray]); the same tables either "
+             "way.")] = Executor.LOCAL,
+    ray_address: Annotated[str | None, typer.Option(
+        "--ray-address", show_default=False,
+        help="With --engine ray: a running cluster (host:6379, or auto); without it a local Ray is started.")] = None,
     config: ConfigOpt = "demo",
     set_: set_opt("retrieval.chunk=32") = None,
     force: ForceOpt = False,
@@ -103,9 +117,14 @@ def extract(
 
         from pipeline.retrieval.extract import run_extract
 
+        if ray_address is not None and engine != "ray":
+            from pipeline.errors import ConfigError
+
+            raise ConfigError("--ray-address goes with --engine ray")
         cfg = load(config, set_)
         inputs = {"model": model, "data": data, **({"reuse": reuse} if reuse is not None else {})}
-        result = run_extract(cfg, inputs=inputs, outputs={"out": out}, force=force)
+        result = run_extract(cfg, inputs=inputs, outputs={"out": out}, force=force, executor=str(engine),
+                             ray_address=ray_address)
         r = json.loads((result / "report.json").read_text())
         typer.echo(f"extracted {r['images']} images ({r['stop_images']} stop views, {r['run_images']} run frames): "
                    f"IPA {r['ipa_dim']}-d, {r['regions']} RPA regions ({r['backbone']}, {r['device']})")

@@ -121,7 +121,8 @@ def _fingerprint(model_dir: Path, images: list[ImageRecord], settings: dict) -> 
 
 
 def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path], force: bool = False,
-                progress: bool = True) -> Path:
+                progress: bool = True, executor: str = "local", ray_address: str | None = None) -> Path:
+    """`executor` "ray" describes the chunks on Ray actors (`pipeline.ray_engine`; the same tables as "local")."""
     import pyarrow as pa
 
     from pipeline.detection.inference import load_detector, load_image
@@ -195,7 +196,24 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
     where = "onnxruntime, cpu" if engine == "onnx" else det.device.type
     bar = progress_bar(total=len(images), desc=f"extracting ({where})", unit="img", enabled=progress)
     try:
-        _extract_chunks(chunks, partial, describe_batch, step, bar)
+        if executor == "ray":
+            if reuse is not None:
+                raise SitelocError("--reuse with --engine ray: not supported yet; extract the changed site "
+                                   "locally (the default engine), which describes only its new images")
+            if engine != "onnx":
+                from pipeline.errors import ConfigError
+
+                raise ConfigError("--engine ray runs the exported ONNX graph: set retrieval.engine to auto (on a "
+                                  "CPU) or onnx")
+            from pipeline.retrieval.extract_ray import extract_on_ray
+
+            pool = onnx_describer(det, partial, rpa_proposals=r.rpa_proposals, rpa_min_score=r.rpa_min_score,
+                                  samples=cfg.export.parity_images, backbone=backbone)
+            computed.extend(extract_on_ray(chunks, partial, ingested, pool, bar, ray_address=ray_address))
+        elif executor == "local":
+            _extract_chunks(chunks, partial, describe_batch, step, bar)
+        else:
+            raise ValueError(f"executor must be local or ray, got '{executor}'")
     finally:
         bar.close()
         if pool is not None:
@@ -241,30 +259,36 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
 def _extract_chunks(chunks: list[list[ImageRecord]], partial: Path, describe_batch, step: int, bar) -> None:
     """Describe each chunk not already in `partial` and write its two tables there."""
     for k, chunk in enumerate(chunks):
-        ipa_path, rpa_path = partial / f"ipa-{k:05d}.parquet", partial / f"rpa-{k:05d}.parquet"
-        if ipa_path.is_file() and rpa_path.is_file():
+        if chunk_done(partial, k):
             bar.update(len(chunk))
             continue
-        ipa, rpa = [], {k2: [] for k2 in ("image_id", "region", "source", "x1", "y1", "x2", "y2", "score",
-                                          "class_id")}
-        rpa_desc = []
+        described = []
         for b in range(0, len(chunk), step):
             batch = chunk[b:b + step]
-            for rec, d in zip(batch, describe_batch(batch), strict=True):
-                ipa.append(d.ipa)
-                for j, ((src, score, cls), box) in enumerate(zip(d.meta, d.boxes, strict=True)):
-                    for key, v in zip(("image_id", "region", "source", "x1", "y1", "x2", "y2", "score", "class_id"),
-                                      (rec.image_id, j, src, *box.tolist(), score, cls), strict=True):
-                        rpa[key].append(v)
-                rpa_desc.append(d.rpa)
+            described.extend(describe_batch(batch))
             bar.update(len(batch))
-        tables.write_table(ipa_path, tables.to_table("ipa", {"image_id": [c.image_id for c in chunk],
-                                                              "descriptor": tables.descriptor_array(np.stack(ipa))}),
-                           "ipa")
-        dim = ipa[0].shape[0]
-        desc = np.vstack(rpa_desc) if rpa_desc else np.zeros((0, dim), np.float32)
-        tables.write_table(rpa_path, tables.to_table("rpa", {**rpa, "descriptor": tables.descriptor_array(desc)}),
-                           "rpa")
+        write_chunk(partial, k, [rec.image_id for rec in chunk], described)
+
+
+def chunk_done(partial: Path, k: int) -> bool:
+    """Chunk k's tables are both in `partial` (each is written under a temporary name, rpa last)."""
+    return (partial / f"ipa-{k:05d}.parquet").is_file() and (partial / f"rpa-{k:05d}.parquet").is_file()
+
+
+def write_chunk(partial: Path, k: int, image_ids: list[str], described: list[ImageDescriptors]) -> None:
+    """Chunk k's ipa and rpa tables in `partial`."""
+    keys = ("image_id", "region", "source", "x1", "y1", "x2", "y2", "score", "class_id")
+    rpa = {key: [] for key in keys}
+    for image_id, d in zip(image_ids, described, strict=True):
+        for j, ((src, score, cls), box) in enumerate(zip(d.meta, d.boxes, strict=True)):
+            for key, v in zip(keys, (image_id, j, src, *box.tolist(), score, cls), strict=True):
+                rpa[key].append(v)
+    ipa = np.stack([d.ipa for d in described])
+    tables.write_table(partial / f"ipa-{k:05d}.parquet", tables.to_table("ipa", {
+        "image_id": list(image_ids), "descriptor": tables.descriptor_array(ipa)}), "ipa")
+    desc = np.vstack([d.rpa for d in described]) if described else np.zeros((0, ipa.shape[1]), np.float32)
+    tables.write_table(partial / f"rpa-{k:05d}.parquet", tables.to_table("rpa", {
+        **rpa, "descriptor": tables.descriptor_array(desc)}), "rpa")
 
 
 def _write_catalog(path: Path, images: list[ImageRecord]) -> None:
