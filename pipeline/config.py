@@ -548,6 +548,8 @@ class SequenceConfig(Strict):
                                       "(the wheel's), a local state-dict file, or null for random")
     frame_size: int = Field(224, ge=32, description="frames are resized so their shorter side is this")
     batch: int = Field(16, ge=1, description="frames per classifier pass")
+    chunk: int = Field(256, ge=1, description="frames per resumable chunk (a file under <out>.partial/; a Ray "
+                       "task with --engine ray)")
     device: str = Field("auto", description="auto (a GPU when torch sees one), cpu, cuda or cuda:N")
     engine: Literal["auto", "torch", "onnx"] = Field(
         "auto", description="what runs the frame classifier in `frame-features`: onnx (the graph the bundle "
@@ -572,7 +574,13 @@ class PriorConfig(Strict):
     weights: str | None = Field("imagenet", description="imagenet, a local state-dict file, or null for random")
     input_size: int = Field(224, ge=32, description="images are resized to this square (the network's input)")
     batch: int = Field(16, ge=1, description="images per network pass")
+    chunk: int = Field(256, ge=1, description="images per resumable chunk (a file under <out>.partial/; a Ray "
+                       "task with --engine ray)")
     device: str = Field("auto", description="auto (a GPU when torch sees one), cpu, cuda or cuda:N")
+    engine: Literal["auto", "torch", "onnx"] = Field(
+        "auto", description="what runs the encoder in `prior features`: onnx (the graph the bundle carries, checked "
+        "against torch on export.parity_images images of each size, one image per thread), torch, or auto (onnx on "
+        "the CPU, torch on a GPU)")
     compression: Literal["ipca", "kpca", "srp", "grp", "none"] = Field(
         "srp", description="per-layer compression (the paper picked sparse random projection)")
     n_components: int = Field(128, ge=2, description="compressed dimension (the paper: 128)")

@@ -6,6 +6,7 @@ import contextlib
 import sys
 import traceback
 from collections.abc import Iterator
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -39,6 +40,30 @@ def set_opt(example: str) -> Any:
 SetOpt = set_opt("ingest.split.seed=3")
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Show full tracebacks on errors.")]
 ForceOpt = Annotated[bool, typer.Option("--force", "-f", help="Replace an existing output (atomically).")]
+
+
+class Executor(StrEnum):
+    LOCAL = "local"
+    RAY = "ray"
+
+
+EngineOpt = Annotated[Executor, typer.Option(
+    "--engine",
+    help="local: in this process (a pool of onnxruntime sessions, or torch); ray: Ray actors, on this machine or on "
+         "the cluster at --ray-address (needs the ray extra: pip install siteloc\\[ray]); the same output either way, "
+         "and either resumes the other's interrupted run.")]
+RayAddressOpt = Annotated[str | None, typer.Option(
+    "--ray-address", show_default=False,
+    help="With --engine ray: a running cluster (host:6379, or auto); without it a local Ray is started.")]
+
+
+def engine_args(engine: Executor, ray_address: str | None) -> dict:
+    """run_<stage>'s executor keywords; --ray-address without --engine ray is a ConfigError."""
+    if ray_address is not None and engine != Executor.RAY:
+        from pipeline.errors import ConfigError
+
+        raise ConfigError("--ray-address goes with --engine ray")
+    return {"executor": str(engine), "ray_address": ray_address}
 
 
 def _plain_flags(command, ctx) -> None:

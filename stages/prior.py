@@ -7,7 +7,20 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, help_text, load, set_opt
+from stages.common import (
+    ConfigOpt,
+    EngineOpt,
+    Executor,
+    ForceOpt,
+    RayAddressOpt,
+    VerboseOpt,
+    cli_errors,
+    echo_path,
+    engine_args,
+    help_text,
+    load,
+    set_opt,
+)
 
 APP_HELP = """Room-and-area localization from pretrained multi-layer CNN features (seed 001).
 
@@ -91,6 +104,7 @@ def features(
         "--reuse", help="An earlier `prior features` output: images it encoded (same bytes, same encoder) are "
         "copied, only the others computed (after `siteloc update`).", show_default=False)] = None,
     config: ConfigOpt = "demo", set_: set_opt("prior.batch=32") = None,
+    engine: EngineOpt = Executor.LOCAL, ray_address: RayAddressOpt = None,
     force: ForceOpt = False, verbose: VerboseOpt = False,
 ) -> None:
     with cli_errors(verbose):
@@ -98,8 +112,9 @@ def features(
 
         from pipeline.prior.features import run_prior_features
 
+        executor = engine_args(engine, ray_address)
         path = run_prior_features(load(config, set_), inputs={"data": data, **({"reuse": reuse} if reuse else {})},
-                                  outputs={"out": out}, force=force)
+                                  outputs={"out": out}, force=force, **executor)
         r = json.loads((path / "report.json").read_text())
         typer.echo(f"{r['images']} images, {r['classes']} (room, area) classes; layers "
                    + ", ".join(f"{k} {v}-d" for k, v in r["dims"].items()) + f" ({r['encoder']['weights']}); "

@@ -2,13 +2,24 @@
 
 from __future__ import annotations
 
-from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, load, set_opt
+from stages.common import (
+    ConfigOpt,
+    EngineOpt,
+    Executor,
+    ForceOpt,
+    RayAddressOpt,
+    VerboseOpt,
+    cli_errors,
+    echo_path,
+    engine_args,
+    load,
+    set_opt,
+)
 
 OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)]
 
@@ -86,11 +97,6 @@ Example: siteloc train-place data/reference/ingested --out models/place
 """
 
 
-class Executor(StrEnum):
-    LOCAL = "local"
-    RAY = "ray"
-
-
 def extract(
     model: Annotated[Path, typer.Argument(help="A trained detector.", show_default=False)],
     data: Annotated[Path, typer.Argument(help="The ingested site.", show_default=False)],
@@ -99,14 +105,8 @@ def extract(
         "--reuse", show_default=False,
         help="An earlier extraction: images whose content is unchanged, described by the same detector and "
              "settings, take their rows from it (after `siteloc update`).")] = None,
-    engine: Annotated[Executor, typer.Option(
-        "--engine",
-        help="local: a pool of onnxruntime sessions in this process; ray: Ray actors, on this machine or on the "
-             "cluster at --ray-address (needs the ray extra: pip install siteloc\\[ray]); the same tables either "
-             "way.")] = Executor.LOCAL,
-    ray_address: Annotated[str | None, typer.Option(
-        "--ray-address", show_default=False,
-        help="With --engine ray: a running cluster (host:6379, or auto); without it a local Ray is started.")] = None,
+    engine: EngineOpt = Executor.LOCAL,
+    ray_address: RayAddressOpt = None,
     config: ConfigOpt = "demo",
     set_: set_opt("retrieval.chunk=32") = None,
     force: ForceOpt = False,
@@ -117,14 +117,10 @@ def extract(
 
         from pipeline.retrieval.extract import run_extract
 
-        if ray_address is not None and engine != "ray":
-            from pipeline.errors import ConfigError
-
-            raise ConfigError("--ray-address goes with --engine ray")
+        executor = engine_args(engine, ray_address)
         cfg = load(config, set_)
         inputs = {"model": model, "data": data, **({"reuse": reuse} if reuse is not None else {})}
-        result = run_extract(cfg, inputs=inputs, outputs={"out": out}, force=force, executor=str(engine),
-                             ray_address=ray_address)
+        result = run_extract(cfg, inputs=inputs, outputs={"out": out}, force=force, **executor)
         r = json.loads((result / "report.json").read_text())
         typer.echo(f"extracted {r['images']} images ({r['stop_images']} stop views, {r['run_images']} run frames): "
                    f"IPA {r['ipa_dim']}-d, {r['regions']} RPA regions ({r['backbone']}, {r['device']})")

@@ -7,7 +7,19 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, load, set_opt
+from stages.common import (
+    ConfigOpt,
+    EngineOpt,
+    Executor,
+    ForceOpt,
+    RayAddressOpt,
+    VerboseOpt,
+    cli_errors,
+    echo_path,
+    engine_args,
+    load,
+    set_opt,
+)
 
 FRAMES_HELP = """Compute the per-frame input of the sequence LSTM for every camera frame of a site's runs.
 
@@ -49,6 +61,8 @@ def frame_features(
         "copied, only the others computed (after `siteloc update`).", show_default=False)] = None,
     config: ConfigOpt = "demo",
     set_: set_opt("sequence.batch=32") = None,
+    engine: EngineOpt = Executor.LOCAL,
+    ray_address: RayAddressOpt = None,
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
@@ -57,8 +71,9 @@ def frame_features(
 
         from pipeline.sequence.frames import run_frame_features
 
+        executor = engine_args(engine, ray_address)
         path = run_frame_features(load(config, set_), inputs={"data": data, **({"reuse": reuse} if reuse else {})},
-                                  outputs={"out": out}, force=force)
+                                  outputs={"out": out}, force=force, **executor)
         r = json.loads((path / "report.json").read_text())
         typer.echo(f"{r['frames']} frames of {len(r['runs'])} runs, {r['dim']}-d ({r['weights']}); computed "
                    f"{r['computed_frames']}" + (f", reused {r['reuse']['reused_frames']}" if "reuse" in r else ""))

@@ -70,10 +70,66 @@ def select(meta: dict, raw: dict[str, np.ndarray], rows) -> tuple[dict, dict[str
     return {k: [v[i] for i in idx] for k, v in meta.items()}, {n: v[idx] for n, v in raw.items()}
 
 
+def batched_encode(enc, batch: int):
+    """An `Encode` (`pipeline.chunked_encoding`) of the torch encoder: image files -> {layer: vectors}."""
+    from pipeline.detection.inference import load_image
+
+    def encode(paths: list[Path]) -> dict[str, np.ndarray]:
+        parts = [enc([load_image(p) for p in paths[i:i + batch]]) for i in range(0, len(paths), batch)]
+        return {name: np.concatenate([part[name] for part in parts]) for name in enc.layers}
+
+    return encode
+
+
+def _encode(enc, engine: str, paths: list[Path], partial: Path, chunk: int, batch: int, samples: int, bar,
+            executor: str, ray_address: str | None) -> tuple[dict[str, np.ndarray], dict]:
+    """{layer: vectors} of `paths` in resumable chunks, and with onnx the graphs' parity figures."""
+    import tempfile
+
+    from pipeline.chunked_encoding import EncoderSpec, encode_in_chunks, export_graphs, graph_encoder
+
+    if engine == "torch":
+        if executor == "ray":
+            from pipeline.errors import ConfigError
+
+            raise ConfigError("--engine ray runs the exported ONNX graph: set prior.engine to auto (on a CPU) or "
+                              "onnx")
+        return encode_in_chunks(paths, partial, chunk, batched_encode(enc, batch), bar), {}
+    import torch
+
+    from pipeline.onnx_threads import SizedGraphPool
+    from pipeline.prior.onnx_export import export_prior_encoder
+
+    layers = list(enc.layers)
+
+    def build(hw: tuple[int, int], images: list, path: Path) -> dict:
+        return export_prior_encoder(enc, hw, path, [torch.from_numpy(im) for im in images])["parity"]
+
+    def run(session, image: np.ndarray, _info: dict) -> list[np.ndarray]:
+        return session.run(None, {"image": image})
+
+    with tempfile.TemporaryDirectory(prefix="siteloc-prior-") as workdir, \
+            SizedGraphPool("prior", Path(workdir), build, run, samples=samples) as pool:
+        def encode(files: list[Path]) -> dict[str, np.ndarray]:
+            out = pool(files)
+            return {name: np.stack([o[i] for o in out]) for i, name in enumerate(layers)}
+
+        def spec() -> EncoderSpec:
+            return EncoderSpec(graph_encoder, {"graphs": export_graphs(paths, pool), "outputs": layers})
+
+        vectors = encode_in_chunks(paths, partial, chunk, encode, bar, executor=executor, spec=spec,
+                                   ray_address=ray_address)
+        graphs = {"workers": pool.workers, "threads_per_worker": pool.threads, "graphs": pool.graphs}
+    return vectors, graphs if graphs["graphs"] else {}
+
+
 def run_prior_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
-                       force: bool = False, progress: bool = True) -> Path:
+                       force: bool = False, progress: bool = True, executor: str = "local",
+                       ray_address: str | None = None) -> Path:
+    """`executor` "ray" runs the encoder's ONNX graph on Ray actors (`pipeline.chunked_encoding`; the same
+    vectors as a local run)."""
     from pipeline.descriptors.multilayer import MultiLayerEncoder
-    from pipeline.detection.inference import load_image, pick_device
+    from pipeline.detection.inference import pick_device
     from pipeline.errors import OutputExistsError
     from pipeline.io.atomic import atomic_dir, write_text_atomic
     from pipeline.progress import progress_bar
@@ -83,12 +139,17 @@ def run_prior_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     if out.exists() and not force:
         raise OutputExistsError(out)
     cols = labelled_images(data)
-    enc = MultiLayerEncoder(p.backbone, p.weights, p.input_size, device=str(pick_device(p.device)))
+    from pipeline.onnx_threads import resolve_engine
+
+    device = pick_device(p.device)
+    engine = resolve_engine(p.engine, device.type)
+    # onnxruntime runs on the CPU here: the torch encoder it is checked against lives there too.
+    enc = MultiLayerEncoder(p.backbone, p.weights, p.input_size, device="cpu" if engine == "onnx" else str(device))
     from pipeline.io.image_reuse import EarlierImages, encoder_key, image_hashes, state_digest, write_hashes
 
     ids = cols["image_id"]
     sha = image_hashes(data, ids)
-    key = encoder_key("prior-features", state_digest(enc.model), p.backbone, p.input_size, list(enc.layers))
+    key = encoder_key("prior-features", state_digest(enc.model), p.backbone, p.input_size, list(enc.layers), engine)
     earlier = (EarlierImages(inputs["reuse"], key, report_field="encoder_sha256", stage="prior features")
                if inputs.get("reuse") else None)
     rows: dict[str, list] = {name: [None] * len(ids) for name in enc.layers}
@@ -101,14 +162,22 @@ def run_prior_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
                 for name in enc.layers:
                     rows[name][k] = old_raw[name][j]
     todo = [k for k in range(len(ids)) if rows[enc.layers[0]][k] is None]
-    bar = progress_bar(total=len(todo), desc=f"{p.backbone} layers", unit="image", enabled=progress)
-    for i in range(0, len(todo), p.batch):
-        batch = todo[i:i + p.batch]
-        for name, v in enc([load_image(data / ids[k]) for k in batch]).items():
-            for k, row in zip(batch, v, strict=True):
-                rows[name][k] = row
-        bar.update(len(batch))
-    bar.close()
+    from pipeline.chunked_encoding import close_partial, open_partial
+
+    partial = out.with_name(out.name + ".partial")
+    todo_paths = [data / ids[k] for k in todo]
+    open_partial(partial, {"stage": "prior-features", "encoder": key, "chunk": p.chunk, "batch": p.batch,
+                           "device": str(enc.device)}, todo_paths)
+    where = f"{p.backbone} layers ({engine}" + (", ray)" if executor == "ray" else ")")
+    bar = progress_bar(total=len(todo), desc=where, unit="image", enabled=progress)
+    try:
+        fresh, graphs = _encode(enc, engine, todo_paths, partial, p.chunk, p.batch, cfg.export.parity_images, bar,
+                                executor, ray_address)
+    finally:
+        bar.close()
+    for name, v in fresh.items():
+        for k, row in zip(todo, v, strict=True):
+            rows[name][k] = row
     with atomic_dir(out, force=force) as tmp:
         dims = {}
         write_hashes(tmp, sha, ids)
@@ -123,8 +192,10 @@ def run_prior_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
             "data": str(data), "images": len(ids), "splits": splits,
             "classes": len(set(zip(cols["room"], cols["area"], strict=True))), "rooms": len(set(cols["room"])),
             "encoder": enc.describe(), "dims": dims, "encoder_sha256": key, "computed_images": len(todo),
+            "engine": engine, **({"onnx": graphs} if graphs else {}),
             **({"reuse": {"from": str(inputs["reuse"]), "encoder_matches": earlier.matches,
                           "reused_images": len(ids) - len(todo)}} if earlier is not None else {})},
             indent=2) + "\n")
         write_effective_config(cfg, tmp, stage="prior-features", inputs=inputs)
+    close_partial(partial)
     return out

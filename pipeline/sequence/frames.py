@@ -71,7 +71,9 @@ def run_frames(data: Path) -> list[tuple[str, int, str, tuple]]:
 
 
 def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
-                       force: bool = False, progress: bool = True) -> Path:
+                       force: bool = False, progress: bool = True, executor: str = "local",
+                       ray_address: str | None = None) -> Path:
+    """`executor` "ray" encodes the chunks on Ray actors (`pipeline.chunked_encoding`; the same table)."""
     from pipeline.errors import OutputExistsError
     from pipeline.io.atomic import atomic_dir, write_text_atomic
 
@@ -110,9 +112,14 @@ def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     found = [old.get(earlier.image_id(sha[i])) if earlier is not None else None for i in ids]
     todo = [k for k, row in enumerate(found) if row is None]
     graphs = {}
+    from pipeline.chunked_encoding import close_partial, open_partial
+
+    partial = out.with_name(out.name + ".partial")
+    todo_paths = [data / ids[k] for k in todo]
+    open_partial(partial, {"stage": "frame-features", "encoder": key, "chunk": s.chunk}, todo_paths)
     if todo:
-        fresh, graphs = _encode_frames(enc, engine, [data / ids[k] for k in todo], s.batch, cfg.export.parity_images,
-                                       progress)
+        fresh, graphs = _encode_frames(enc, engine, todo_paths, s.batch, cfg.export.parity_images, progress, partial,
+                                       s.chunk, executor, ray_address)
         for k, row in zip(todo, fresh, strict=True):
             found[k] = row
     matrix = np.stack(found).astype(np.float32)
@@ -131,42 +138,62 @@ def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
                           "reused_frames": len(frames) - len(todo)}} if earlier is not None else {}),
             **({"onnx": graphs} if graphs else {})}, indent=2) + "\n")
         write_effective_config(cfg, tmp, stage="frame-features", inputs=inputs)
+    close_partial(partial)
     return out
 
 
-def _encode_frames(enc: FrameEncoder, engine: str, paths: list[Path], batch: int, samples: int,
-                   progress: bool) -> tuple[np.ndarray, dict]:
-    """(N, 1000) logits of the frame files and, with onnx, the graphs' parity figures (the graphs themselves
-    live in a temporary directory: the bundle exports its own)."""
+def _encode_frames(enc: FrameEncoder, engine: str, paths: list[Path], batch: int, samples: int, progress: bool,
+                   partial: Path, chunk: int, executor: str = "local", ray_address: str | None = None
+                   ) -> tuple[np.ndarray, dict]:
+    """(N, 1000) logits of the frame files, in resumable chunks under `partial` (`pipeline.chunked_encoding`),
+    and, with onnx, the graphs' parity figures (the graphs themselves live in a temporary directory: the bundle
+    exports its own)."""
     import tempfile
 
     import torch
 
+    from pipeline.chunked_encoding import EncoderSpec, encode_in_chunks, export_graphs, graph_encoder
     from pipeline.detection.inference import load_image
     from pipeline.progress import progress_bar
 
-    bar = progress_bar(total=len(paths), desc=f"frame features ({engine})", unit="frame", enabled=progress)
-    logits, graphs = [], {}
-    if engine == "torch":
-        for i in range(0, len(paths), batch):
-            logits.append(enc([load_image(p) for p in paths[i:i + batch]]))
-            bar.update(len(paths[i:i + batch]))
-    else:
-        from pipeline.onnx_threads import SizedGraphPool
-        from pipeline.sequence.onnx_export import export_frame_encoder
+    where = f"{engine}, ray" if executor == "ray" else engine
+    bar = progress_bar(total=len(paths), desc=f"frame features ({where})", unit="frame", enabled=progress)
+    graphs = {}
+    try:
+        if engine == "torch":
+            if executor == "ray":
+                from pipeline.errors import ConfigError
 
-        def build(hw: tuple[int, int], images: list, path: Path) -> dict:
-            return export_frame_encoder(enc, hw, path, [torch.from_numpy(im) for im in images])["parity"]
+                raise ConfigError("--engine ray runs the exported ONNX graph: set sequence.engine to auto (on a "
+                                  "CPU) or onnx")
 
-        def run(session, image: np.ndarray, _info: dict) -> np.ndarray:
-            return session.run(None, {"image": image})[0]
+            def encode(files: list[Path]) -> dict[str, np.ndarray]:
+                return {"logits": np.vstack([enc([load_image(p) for p in files[i:i + batch]])
+                                             for i in range(0, len(files), batch)])}
 
-        with tempfile.TemporaryDirectory(prefix="siteloc-frames-") as workdir, \
-                SizedGraphPool("frames", Path(workdir), build, run, samples=samples) as pool:
-            step = 4 * pool.workers
-            for i in range(0, len(paths), step):
-                logits.append(np.stack(pool(paths[i:i + step])))
-                bar.update(len(paths[i:i + step]))
-            graphs = {"workers": pool.workers, "threads_per_worker": pool.threads, "graphs": pool.graphs}
-    bar.close()
-    return np.vstack(logits).astype(np.float32), graphs
+            logits = encode_in_chunks(paths, partial, chunk, encode, bar)["logits"]
+        else:
+            from pipeline.onnx_threads import SizedGraphPool
+            from pipeline.sequence.onnx_export import export_frame_encoder
+
+            def build(hw: tuple[int, int], images: list, path: Path) -> dict:
+                return export_frame_encoder(enc, hw, path, [torch.from_numpy(im) for im in images])["parity"]
+
+            def run(session, image: np.ndarray, _info: dict) -> np.ndarray:
+                return session.run(None, {"image": image})[0]
+
+            with tempfile.TemporaryDirectory(prefix="siteloc-frames-") as workdir, \
+                    SizedGraphPool("frames", Path(workdir), build, run, samples=samples) as pool:
+                def encode(files: list[Path]) -> dict[str, np.ndarray]:
+                    return {"logits": np.stack(pool(files))}
+
+                def spec() -> EncoderSpec:
+                    return EncoderSpec(graph_encoder, {"graphs": export_graphs(paths, pool), "outputs": ["logits"]})
+
+                logits = encode_in_chunks(paths, partial, chunk, encode, bar, executor=executor, spec=spec,
+                                          ray_address=ray_address)["logits"]
+                if pool.graphs:
+                    graphs = {"workers": pool.workers, "threads_per_worker": pool.threads, "graphs": pool.graphs}
+    finally:
+        bar.close()
+    return logits.astype(np.float32), graphs

@@ -1,0 +1,167 @@
+"""Image encodings computed in resumable chunks, in this process or on Ray actors (`--engine ray`).
+
+`frame-features` and `prior features` turn every image of a site into arrays. Both hand `encode_in_chunks`
+the image files still to encode, a `.partial` folder beside their output and a chunk size: each chunk's
+arrays go to `partial/chunk-<k>.npz`, written under a temporary name and renamed, so a chunk is done exactly
+when its file exists, an interrupted run resumes from the finished chunks, and a chunk lost with a Ray
+worker is simply computed again. `plan.json` holds a fingerprint of the inputs and settings: the partial
+folder of another run is refused rather than mixed in.
+
+Locally the stage's own encoder (its thread pool of ONNX sessions, or torch) runs each chunk. On Ray each
+actor builds the encoder from an `EncoderSpec` (a module-level factory and its keyword arguments, so it
+pickles by reference) once, then encodes chunk after chunk. The arrays are the same either way: the ONNX
+stages export and check their graphs here first (`export_graphs`) and the actors open those files.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import SitelocError
+
+Encode = Callable[[list[Path]], dict[str, np.ndarray]]  # image files -> {name: (len(files), ...) array}
+
+
+@dataclass(frozen=True)
+class EncoderSpec:
+    """How a Ray actor builds the encoder: `factory(**kwargs)` returns an `Encode`."""
+
+    factory: Callable[..., Encode]
+    kwargs: dict = field(default_factory=dict)
+
+    def build(self) -> Encode:
+        return self.factory(**self.kwargs)
+
+
+def open_partial(partial: Path, settings: dict, paths: Sequence[Path]) -> None:
+    """Create `partial` for a run of these settings and images, or keep the one an interrupted identical run
+    left; refuse the partial folder of another run."""
+    from pipeline.io.atomic import write_text_atomic
+
+    h = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
+    for p in paths:
+        h.update(str(p).encode() + b"\0")
+    fingerprint = h.hexdigest()
+    plan = Path(partial) / "plan.json"
+    if plan.is_file() and json.loads(plan.read_text()).get("fingerprint") != fingerprint:
+        raise SitelocError(f"{partial}: an interrupted run with other images or settings is there; delete it (or "
+                           f"rerun that command) to start afresh")
+    Path(partial).mkdir(parents=True, exist_ok=True)
+    write_text_atomic(plan, json.dumps({"fingerprint": fingerprint, "images": len(paths)}) + "\n")
+
+
+def chunk_path(partial: Path, k: int) -> Path:
+    return Path(partial) / f"chunk-{k:05d}.npz"
+
+
+def write_chunk(partial: Path, k: int, arrays: dict[str, np.ndarray]) -> None:
+    from pipeline.io.atomic import atomic_file
+
+    with atomic_file(chunk_path(partial, k)) as f:
+        np.savez(f, **arrays)
+
+
+def read_chunk(partial: Path, k: int) -> dict[str, np.ndarray]:
+    with np.load(chunk_path(partial, k), allow_pickle=False) as z:
+        return {name: z[name] for name in z.files}
+
+
+def encode_in_chunks(paths: Sequence[Path], partial: Path, chunk: int, encode: Encode | None, bar, *,
+                     executor: str = "local", spec: Callable[[], EncoderSpec] | None = None,
+                     ray_address: str | None = None) -> dict[str, np.ndarray]:
+    """{name: array over all `paths`, in order}, chunk by chunk through `encode` here (executor "local") or on
+    Ray actors built from `spec()` (called only when chunks remain: it may export graphs). `partial` must be
+    opened (`open_partial`); `bar` advances by images."""
+    paths = [Path(p) for p in paths]
+    chunks = [paths[i:i + chunk] for i in range(0, len(paths), chunk)]
+    pending = [k for k in range(len(chunks)) if not chunk_path(partial, k).is_file()]
+    bar.update(sum(len(c) for k, c in enumerate(chunks) if k not in set(pending)))
+    if executor == "local":
+        for k in pending:
+            write_chunk(partial, k, encode(chunks[k]))
+            bar.update(len(chunks[k]))
+    elif executor == "ray":
+        if pending:
+            from pipeline.machine import usable_core_count
+            from pipeline.ray_engine import connect, run_chunks
+
+            built = spec()
+            ray = connect(ray_address, num_cpus=None if ray_address else usable_core_count())
+            workers = max(1, min(len(pending), int(ray.available_resources().get("CPU", 1))))
+            run_chunks(ray, [{"chunk": k, "paths": [str(p) for p in chunks[k]]} for k in pending], ChunkEncoder,
+                       {"partial": str(partial), "spec": built}, workers=workers, on_done=lambda _k, n: bar.update(n))
+    else:
+        raise ValueError(f"executor must be local or ray, got '{executor}'")
+    parts = [read_chunk(partial, k) for k in range(len(chunks))]
+    if not parts:
+        return {}
+    return {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
+
+
+def close_partial(partial: Path) -> None:
+    """Remove the partial folder once the stage's output is in place."""
+    for p in Path(partial).iterdir():
+        p.unlink()
+    Path(partial).rmdir()
+
+
+class ChunkEncoder:
+    """A Ray actor: builds the encoder once, then encodes one chunk per call and writes its file."""
+
+    def __init__(self, partial: str, spec: EncoderSpec):
+        self.partial, self.encode = Path(partial), spec.build()
+
+    def __call__(self, batch: dict) -> dict:
+        k = int(batch["chunk"][0])
+        paths = [Path(str(p)) for p in batch["paths"][0]]
+        arrays = self.encode(paths)
+        write_chunk(self.partial, k, arrays)
+        return {"chunk": np.array([k]), "items": np.array([len(paths)])}
+
+
+def export_graphs(paths: Sequence[Path], pool) -> dict[str, tuple[str, dict]]:
+    """Export and check (through the stage's `SizedGraphPool`) a graph for every image size among `paths`;
+    "<W>x<H>" -> (graph file, info)."""
+    from PIL import Image
+
+    first: dict[tuple[int, int], Path] = {}
+    for p in paths:
+        with Image.open(p) as im:
+            first.setdefault((im.height, im.width), Path(p))
+    pool(list(first.values()))
+    return {key: (str(path), info) for key, (path, info) in pool.graph_files().items()}
+
+
+def graph_encoder(graphs: dict[str, tuple[str, dict]], outputs: list[str]) -> Encode:
+    """An `Encode` running each image through its size's graph (onnxruntime, one thread: one actor per core)
+    and naming the graph's outputs `outputs`."""
+    import onnxruntime as ort
+
+    from pipeline.runtime.describer import image_array
+
+    sessions: dict[str, object] = {}
+
+    def encode(paths: list[Path]) -> dict[str, np.ndarray]:
+        rows: dict[str, list] = {name: [] for name in outputs}
+        for p in paths:
+            image = image_array(p)
+            key = f"{image.shape[2]}x{image.shape[1]}"
+            if key not in graphs:
+                raise SitelocError(f"{p}: an image of {key} pixels, for which no graph was exported "
+                                   f"(sizes: {sorted(graphs)})")
+            if key not in sessions:
+                options = ort.SessionOptions()
+                options.intra_op_num_threads = 1
+                options.inter_op_num_threads = 1
+                sessions[key] = ort.InferenceSession(graphs[key][0], options, providers=["CPUExecutionProvider"])
+            for name, value in zip(outputs, sessions[key].run(None, {"image": image}), strict=True):
+                rows[name].append(value)
+        return {name: np.stack(v) for name, v in rows.items()}
+
+    return encode
