@@ -38,7 +38,9 @@ FEATURES_HELP = """Compute the three layers' vectors of every capture image of a
 
 DATA is the output of `siteloc ingest`; every image needs room and area labels. Writes one Parquet file
 per layer (<layer>.parquet: image_id, stop, room, area, split, pose, l2-normalised vector), report.json
-and config.yaml.
+and config.yaml. On a CPU the network runs as the ONNX graph the bundle carries (prior.engine: auto),
+checked against torch first. Work goes in chunks of prior.chunk images to OUT.partial/, so an interrupted
+run resumes; --engine ray encodes the chunks on Ray actors: the same vectors (docs/scaling.md).
 
 Example: siteloc prior features data/reference/ingested --out data/reference/multilayer
 """

@@ -34,8 +34,9 @@ With --reuse EARLIER_EXTRACTION, images whose sha256 and describer (detector wei
 RPA settings) are unchanged take their rows from it: the output is the one a full run writes.
 
 Work goes in chunks of retrieval.chunk images to OUT.partial/; rerunning an interrupted extraction with
-the same model, site and settings resumes it. Writes ipa.parquet, rpa.parquet (descriptor:
-fixed_size_list<float32>), catalog.parquet (poses), report.json, config.yaml.
+the same model, site and settings resumes it, with either engine. --engine ray describes the chunks on Ray
+actors, here or on the cluster at --ray-address: the same tables (docs/scaling.md). Writes ipa.parquet,
+rpa.parquet (descriptor: fixed_size_list<float32>), catalog.parquet (poses), report.json, config.yaml.
 
 Example: siteloc extract models/detector data/reference/ingested --out data/reference/descriptors
 """

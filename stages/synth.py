@@ -7,7 +7,17 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, load
+from stages.common import (
+    ConfigOpt,
+    EngineOpt,
+    Executor,
+    ForceOpt,
+    RayAddressOpt,
+    VerboseOpt,
+    cli_errors,
+    engine_args,
+    load,
+)
 
 HELP = """Generate and render a reference office floor as a site capture directory.
 
@@ -43,7 +53,8 @@ paper) and --preset / --seed / --set override it. --set overrides any site prese
 --set camera.width=320 --set camera.height=240 --set runs.query_runs=5.
 Every output but synth_timing.json is byte-identical for the same preset, overrides and seed, however
 many --workers render (each a process with its own single-threaded EGL context: on 2 cores two of them
-render 1.3x faster than one context using both cores).
+render 1.3x faster than one context using both cores), or Ray actors with --engine ray, here or on the
+cluster at --ray-address (docs/scaling.md).
 
 Example: siteloc synth --preset office --out data/office/site
 """
@@ -93,8 +104,11 @@ def synth(
     ] = None,
     workers: Annotated[
         int | None, typer.Option("--workers", "-w", min=1, show_default=False,
-                                 help="Rendering processes \\[default: the usable cores, at most 4; 1: this process].")
+                                 help="Rendering processes, or Ray actors with --engine ray \\[default: the "
+                                      "usable cores, at most 4; 1: this process; on a Ray cluster, its CPUs].")
     ] = None,
+    engine: EngineOpt = Executor.LOCAL,
+    ray_address: RayAddressOpt = None,
     config: ConfigOpt = "demo",
     force: ForceOpt = False,
     verbose: VerboseOpt = False,
@@ -111,7 +125,8 @@ def synth(
         path = run_synth(site, outputs={"out": out}, seed=cfg.seed if seed is None else seed, change=change,
                          force=force, allow_fallback=not strict_assets, workers=workers, areas=tuple(area or ()),
                          change_areas=tuple(change_area or ()),
-                         move_wall_m=move_wall_m if move_wall_m is not None else 0.5 if move_wall else 0.0)
+                         move_wall_m=move_wall_m if move_wall_m is not None else 0.5 if move_wall else 0.0,
+                         **engine_args(engine, ray_address))
         rep = json.loads((path / "synth_report.json").read_text())
         timing = json.loads((path / "synth_timing.json").read_text())
         typer.echo(

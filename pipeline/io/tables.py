@@ -8,6 +8,7 @@ column contracts are the ones in ARCHITECTURE.md; `docs/data-formats.md` documen
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
 
 import pyarrow as pa
@@ -256,6 +257,34 @@ def write_table(path: Path, table: pa.Table, kind: str, metadata: dict[str, str]
         else:
             pq.write_table(table, fh, compression="zstd")
     return Path(path)
+
+
+def write_table_parts(path: Path, parts: Iterable[pa.Table], kind: str, metadata: dict[str, str] | None = None
+                      ) -> int:
+    """Write the concatenation of `parts` as `write_table` would, one part in memory at a time (a Parquet row
+    group each; an Arrow IPC record batch each). Returns the rows written; at least one part is needed."""
+    writer, rows = None, 0
+    with atomic_file(Path(path), "wb") as fh:
+        try:
+            for part in parts:
+                if writer is None:
+                    merged = {k: v for k, v in table_metadata(part).items() if k not in ("table", "schema_version")}
+                    merged.update(metadata or {})
+                    schema = _with_metadata(_contract(kind, part), kind, merged)
+                    writer = (pa.ipc.new_file(fh, schema) if Path(path).suffix == ".arrow"
+                              else pq.ParquetWriter(fh, schema, compression="zstd"))
+                part = part.select(schema.names).cast(schema)
+                if isinstance(writer, pq.ParquetWriter):
+                    writer.write_table(part, row_group_size=max(part.num_rows, 1))
+                else:
+                    writer.write_table(part)
+                rows += part.num_rows
+            if writer is None:
+                raise ValueError(f"{path}: no parts to write")
+        finally:
+            if writer is not None:
+                writer.close()
+    return rows
 
 
 def table_metadata(table: pa.Table) -> dict[str, str]:

@@ -123,7 +123,6 @@ def _fingerprint(model_dir: Path, images: list[ImageRecord], settings: dict) -> 
 def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path], force: bool = False,
                 progress: bool = True, executor: str = "local", ray_address: str | None = None) -> Path:
     """`executor` "ray" describes the chunks on Ray actors (`pipeline.ray_engine`; the same tables as "local")."""
-    import pyarrow as pa
 
     from pipeline.detection.inference import load_detector, load_image
     from pipeline.errors import OutputExistsError
@@ -218,9 +217,10 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
         bar.close()
         if pool is not None:
             pool.close()
-    merged = {kind: pa.concat_tables([tables.read_table(partial / f"{kind}-{k:05d}.parquet", kind)
-                                      for k in range(len(chunks))]) for kind in ("ipa", "rpa")}
-    dim = merged["ipa"].schema.field("descriptor").type.list_size
+    def parts(kind: str):  # the chunks one at a time: a site of 10^6 images has ~45 GB of regions
+        return (tables.read_table(partial / f"{kind}-{k:05d}.parquet", kind) for k in range(len(chunks)))
+
+    dim = tables.read_table(partial / "ipa-00000.parquet", "ipa").schema.field("descriptor").type.list_size
     meta = {"backbone": det.config["builder"]["backbone"], "model": str(model_dir), "dim": str(dim)}
     record = None
     if backbone is not None:
@@ -229,8 +229,8 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
             raise SitelocError(f"{r.backbone}: descriptors of {dim} values, its record says {record['dim']}")
         meta["retrieval_backbone"] = json.dumps(record)
     with atomic_dir(out, force=force) as tmp:
-        for kind, table in merged.items():
-            tables.write_table(tmp / f"{kind}.parquet", table, kind, meta)
+        rows = {kind: tables.write_table_parts(tmp / f"{kind}.parquet", parts(kind), kind, meta)
+                for kind in ("ipa", "rpa")}
         _write_catalog(tmp / "catalog.parquet", images)
         ids = list(dict.fromkeys(i.image_id for i in images))
         tables.write_table(tmp / HASHES_FILE, tables.to_table("image_hashes", {
@@ -238,7 +238,7 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
         write_text_atomic(tmp / "report.json", json.dumps({
             "images": len(images), "stop_images": sum(not i.split.startswith("run:") for i in images),
             "run_images": sum(i.split.startswith("run:") for i in images), "ipa_dim": int(dim),
-            "regions": merged["rpa"].num_rows,
+            "regions": rows["rpa"],
             "backbone": meta["backbone"], "device": str(det.device), "engine": engine,
             "describer_sha256": describer,
             # Images described by this run (a resumed run counts only the chunks it finished itself).

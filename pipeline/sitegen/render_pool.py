@@ -17,6 +17,13 @@ and distorts the frame, leaves it in `STASH` and returns its exposure meter; the
 `AutoExposure` over the meters in frame order; `develop` then finishes each frame with its gain.
 
 `workers=1` renders in the calling process, through the same `render_views` and `develop_frames`.
+
+`engine="ray"` (`synth --engine ray`) renders on Ray actors instead of spawned processes: each actor opens the
+same render context once, every batch is submitted at once, round robin, and the results come back in order.
+A batch lost with its worker is run again on the restarted actor. Batches are Python objects (lighting, views,
+boxes back), not rows of a table, and the caller overlaps them with laser casting, so this uses Ray's actors
+directly rather than a Ray Dataset. On a cluster the site's output directory must be on storage every node
+sees.
 """
 
 from __future__ import annotations
@@ -173,6 +180,20 @@ def _start_worker(preset_json: dict, seed: int, change: bool | ChangeSpec, allow
                                             change_areas=change_areas)
 
 
+class RenderActor:
+    """A Ray actor holding one render context (the `_start_worker` of a Ray worker)."""
+
+    def __init__(self, preset_json: dict, seed: int, change, allow_fallback: bool, root: str,
+                 change_areas: tuple[str, ...] = ()):
+        _start_worker(preset_json, seed, change, allow_fallback, root, change_areas)
+
+    def render(self, batch):
+        return _work(batch)
+
+    def develop(self, batch):
+        return _develop(batch)
+
+
 def _work(batch):
     lighting, views = batch
     return render_views(_WORKER["ctx"], lighting, views)
@@ -223,13 +244,32 @@ class RenderPool:
     lagged frames finished with their gains.
 
     With `workers` > 1, spawned processes render (see the module's docstring); otherwise a renderer here does,
-    with the caller's `scene` and `library` when given (built from the preset and seed when not).
+    with the caller's `scene` and `library` when given (built from the preset and seed when not). `engine`
+    "ray": `workers` Ray actors render, on this machine or on the cluster at `ray_address`.
     """
 
     def __init__(self, preset, seed: int, change: bool | ChangeSpec, allow_fallback: bool, root: Path, *, workers: int,
-                 scene=None, library=None, change_areas: tuple[str, ...] = ()):
-        self.workers, self.ctx, self._renderer, self._pool = int(workers), None, None, None
-        if self.workers > 1:
+                 scene=None, library=None, change_areas: tuple[str, ...] = (), engine: str = "local",
+                 ray_address: str | None = None):
+        self.workers, self.ctx, self._renderer, self._pool, self._actors = int(workers), None, None, None, None
+        if engine == "ray":
+            from pipeline.machine import usable_core_count
+            from pipeline.ray_engine import connect
+
+            if ray_address is None:  # a local Ray: the same clear error as the process pool's
+                from pipeline.sitegen.render import RenderError, egl_available
+
+                ok, why = egl_available()
+                if not ok:
+                    raise RenderError(why)
+            ray = connect(ray_address, num_cpus=None if ray_address else usable_core_count())
+            remote = ray.remote(num_cpus=1, max_restarts=3, max_task_retries=3)(RenderActor)
+            args = (preset.model_dump(mode="json"), seed, change, allow_fallback, str(root), tuple(change_areas))
+            self._actors = [remote.remote(*args) for _ in range(self.workers)]
+            self._ray = ray
+        elif engine != "local":
+            raise ValueError(f"engine must be local or ray, got '{engine}'")
+        elif self.workers > 1:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
 
@@ -249,17 +289,30 @@ class RenderPool:
     def map(self, batches: Iterable[tuple[object, list[View]]]) -> Iterator[list[Rendered]]:
         """With workers, every batch is submitted now and rendered while the caller goes on; here, each is
         rendered as the iterator reaches it."""
+        if self._actors is not None:
+            return self._on_actors("render", batches)
         if self._pool is None:
             return (render_views(self.ctx, lighting, views) for lighting, views in batches)
         return _worker_errors(self._pool.map(_work, batches))
 
     def develop(self, batches: Iterable[tuple[list[View], list[float]]]) -> Iterator[list[float]]:
         """Each (views, gains) batch of stashed frames finished (`develop_frames`), submitted as `map` does."""
+        if self._actors is not None:
+            return self._on_actors("develop", batches)
         if self._pool is None:
             return (develop_frames(self.ctx, views, gains) for views, gains in batches)
         return _worker_errors(self._pool.map(_develop, batches))
 
+    def _on_actors(self, method: str, batches: Iterable) -> Iterator:
+        """Every batch submitted now, round robin over the actors; results in order."""
+        refs = [getattr(self._actors[i % len(self._actors)], method).remote(b) for i, b in enumerate(batches)]
+        return (self._ray.get(ref) for ref in refs)
+
     def close(self) -> None:
+        if self._actors is not None:
+            for actor in self._actors:
+                self._ray.kill(actor)
+            self._actors = None
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None

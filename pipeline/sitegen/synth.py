@@ -128,10 +128,11 @@ def check_areas(scene, areas: tuple[str, ...], option: str) -> None:
 def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, change: bool = False,
               force: bool = False, progress: bool = True, allow_fallback: bool = True,
               workers: int | None = None, areas: tuple[str, ...] = (), change_areas: tuple[str, ...] = (),
-              move_wall_m: float = 0.0) -> Path:
+              move_wall_m: float = 0.0, executor: str = "local", ray_address: str | None = None) -> Path:
     """Write the reference site of `preset` to `outputs['out']`; returns that directory. `workers`: rendering
-    processes (`pipeline.sitegen.render_pool`; None: the usable cores, at most 4; 1: this process). The
-    site written does not depend on it. `areas`: capture only the stops in these rooms or room/areas (a
+    processes (`pipeline.sitegen.render_pool`; None: the usable cores, at most 4; 1: this process), or with
+    `executor` "ray" Ray actors (None: a cluster's CPUs at `ray_address`). The site written depends on
+    neither. `areas`: capture only the stops in these rooms or room/areas (a
     re-capture; stop ids and views stay the full site's). `change_areas`: the change happens only there (it
     implies `change`; the lighting stays the same, as it is the building's). `move_wall_m` > 0: the change also
     moves an interior wall that far (`change.choose_wall_move`; beside a room of `change_areas` when given; implies
@@ -171,12 +172,17 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
     k = intrinsics_of(preset)
     rng = np.random.default_rng(seed + 31)
     out = Path(outputs["out"])
+    if workers is None and executor == "ray" and ray_address:
+        from pipeline.ray_engine import connect
+
+        workers = max(1, int(connect(ray_address).available_resources().get("CPU", 1)))
     workers = default_workers() if workers is None else max(1, int(workers))
     suffix = image_suffix(preset)
     stats = {"images": 0, "render_s": 0.0, "effects_s": 0.0, "workers": workers}
     with atomic_dir(out, force=force) as tmp:
         with RenderPool(preset, seed, scene_change, allow_fallback, tmp, workers=workers, scene=scene,
-                        library=library, change_areas=change_areas) as pool:
+                        library=library, change_areas=change_areas, engine=executor,
+                        ray_address=ray_address) as pool:
             offsets = [2 * math.pi * v / preset.camera.views for v in range(preset.camera.views)]
             rows, coco_images, coco_anns, batches = [], [], [], []
             for s, (x, y, heading) in enumerate(stops):
@@ -251,6 +257,7 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
         # render_s: summed over the workers' frames (with several workers it exceeds the rendering's wall time).
         timing = {"render_images_per_s": round(stats["images"] / max(stats["render_s"], 1e-9), 2),
                   "render_s": round(stats["render_s"], 2), "render_workers": stats["workers"],
+                  "render_engine": executor,
                   "camera_effects_s": round(stats["effects_s"], 2),
                   "wall_time_s": round(time.perf_counter() - t_start, 1),
                   "images_per_s": round(stats["images"] / max(time.perf_counter() - t_start, 1e-9), 2),

@@ -110,3 +110,22 @@ def test_interrupted_write_leaves_nothing(tmp_path):
     with pytest.raises(ValueError, match="non-nullable"):
         tables.write_table(tmp_path / "b.parquet", bad, "boxes")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("suffix", [".parquet", ".arrow"])
+def test_parts_write_the_table_of_their_concatenation(tmp_path, suffix):
+    rng = np.random.default_rng(0)
+    parts = []
+    for k, n in enumerate((3, 0, 5)):
+        desc = rng.standard_normal((n, 4)).astype(np.float32)
+        parts.append(tables.to_table("ipa", {"image_id": [f"i{k}-{j}" for j in range(n)],
+                                              "descriptor": tables.descriptor_array(desc)}, metadata={"model": "m"}))
+    whole, streamed = tmp_path / f"whole{suffix}", tmp_path / f"parts{suffix}"
+    tables.write_table(whole, pa.concat_tables(parts), "ipa", {"dim": "4"})
+    assert tables.write_table_parts(streamed, iter(parts), "ipa", {"dim": "4"}) == 8
+    a, b = tables.read_table(whole, "ipa"), tables.read_table(streamed, "ipa")
+    assert a.equals(b, check_metadata=True)
+    assert tables.table_metadata(b)["model"] == "m" and tables.table_metadata(b)["dim"] == "4"
+    with pytest.raises(ValueError, match="no parts"):
+        tables.write_table_parts(tmp_path / f"none{suffix}", iter(()), "ipa")
+    assert not (tmp_path / f"none{suffix}").exists()
