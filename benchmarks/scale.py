@@ -18,8 +18,11 @@ For each size and index kind (`retrieval.index_params` with --set overrides): bu
 per image (faiss's serialised size), ms per query (one query at a time, as the runtime asks, and a batch
 of 16), recall@50 against exact search, and up to --rerank-max images the whole query (`search.retrieve`:
 first stage + RPA re-ranking of the Top-50 with the query's 10 regions) on regions memory-mapped from a
-file, as `load_database` maps database_rpa.arrow (the file just written: a warm page cache). Prints the
-machine first; each kind's speed as a ratio to exact.
+file, as `load_database` maps database_rpa.arrow, with the Top-50's regions read one after the other and
+asked for all at once first (`Database.paged`, `search.will_need`: what the runtime does). The file was
+just written: a warm page cache where it fits in memory, disk reads where it does not (10^6 images: 45 GB);
+--cold unmaps the file and drops the page cache before each kind's measure (needs root).
+Prints the machine first; each kind's speed as a ratio to exact.
 """
 
 from __future__ import annotations
@@ -151,19 +154,34 @@ def index_bytes(index) -> int | None:
     return int(faiss.serialize_index(index.index).nbytes)
 
 
-def whole_query_ms(db, index, real: Real, picks: np.ndarray, top_n: int) -> float:
-    """ms per query of `search.retrieve` (first stage + RPA re-ranking of the Top-N), one query at a time."""
+def drop_page_cache() -> None:
+    import os
+
+    os.sync()
+    try:
+        Path("/proc/sys/vm/drop_caches").write_text("1\n")
+    except OSError as exc:
+        sys.exit(f"--cold: cannot drop the page cache ({exc}); run as root, or leave --cold out")
+
+
+def whole_query_ms(db, index, real: Real, picks: np.ndarray, top_n: int) -> tuple[float, float]:
+    """ms per query of `search.retrieve` (first stage + RPA re-ranking of the Top-N), one query at a time:
+    (reading the Top-N's regions one after the other, asking for all their pages first as a paged database does).
+    The two alternate query by query, so both meet the page cache in the same state."""
     from pipeline.retrieval.search import retrieve
 
-    def run(i):
+    def run(i, paged):
+        db.paged = paged
         lo, hi = real.query_offsets[i], real.query_offsets[i + 1]
         retrieve(db, index, real.queries[i], real.query_regions[lo:hi], top_n=top_n)
 
-    run(picks[0])
-    t0 = time.perf_counter()
-    for i in picks:
-        run(i)
-    return (time.perf_counter() - t0) / len(picks) * 1e3
+    run(picks[0], True)
+    spent = {False: 0.0, True: 0.0}
+    for k, i in enumerate(picks):
+        t0 = time.perf_counter()
+        run(i, bool(k % 2))
+        spent[bool(k % 2)] += time.perf_counter() - t0
+    return spent[False] / len(picks[::2]) * 1e3, spent[True] / len(picks[1::2]) * 1e3
 
 
 def main() -> None:
@@ -181,6 +199,9 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="retrieval.index_params overrides, e.g. --set ivf_nprobe=64")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--cold", action="store_true",
+                    help="drop the OS page cache before each whole-query measure (needs root): every region read "
+                         "comes from the disk, as on a server that has not answered those places yet")
     args = ap.parse_args()
     from pipeline.config import IndexParams
     from pipeline.retrieval.index import ExactIndex, make_index
@@ -198,8 +219,9 @@ def main() -> None:
           f"replicated by {args.replicate}")
     copies = Copies(real.db, args.replicate, args.seed + 1)
     print("\n| images | index | build (s) | bytes / image | ms / query (one) | ms / query (batch 16) | "
-          "speed vs exact (one) | recall@50 | whole query with re-ranking (ms) |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+          "speed vs exact (one) | recall@50 | whole query, regions read in turn (ms) | "
+          "whole query, pages asked for at once (ms) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     args.work.mkdir(parents=True, exist_ok=True)
     for n in args.sizes:
         x = replicate(real.db, n, copies)
@@ -220,7 +242,12 @@ def main() -> None:
             recall = np.mean([len(set(a) & set(b)) / args.k for a, b in zip(got, truth, strict=True)])
             size = index_bytes(index) if kind != "exact" else x.nbytes
             ratio = f"{base / single:.1f}x" if base else "-"
-            whole = f"{whole_query_ms(db, index, real, picks, args.k):.2f}" if db is not None else "-"
+            if db is not None and args.cold:  # unmapped first: the OS keeps the pages a process maps
+                db.rpa = regions = None
+                drop_page_cache()
+                db.rpa = regions = np.load(args.work / f"regions-{n}.npy", mmap_mode="r")
+            whole = " | ".join(f"{ms:.2f}" for ms in whole_query_ms(db, index, real, picks, args.k)) \
+                if db is not None else "- | -"
             print(f"| {n} | {kind} | {build:.1f} | {size / n:.0f} | {single:.3f} | {batch:.3f} | {ratio} | "
                   f"{recall:.3f} | {whole} |", flush=True)
             del index

@@ -22,6 +22,16 @@ settings.register_profile("explore", max_examples=2000, derandomize=False, print
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
 
+@pytest.fixture(scope="session")
+def local_ray():
+    """A local Ray of 2 CPUs for the `--engine ray` tests (skipped without the ray extra)."""
+    ray = pytest.importorskip("ray")
+    from pipeline.ray_engine import connect
+
+    yield connect(None, num_cpus=2)
+    ray.shutdown()
+
+
 MICRO_SETS = ["detector.weights=null", "detector.iterations=4", "retrieval.chunk=16", "retrieval.rpa_proposals=20"]
 
 

@@ -97,17 +97,6 @@ def test_a_chunk_file_never_holds_pickles(files, tmp_path):
         assert sorted(z.files) == ["profile", "sum"]
 
 
-ray = pytest.importorskip("ray")
-
-
-@pytest.fixture(scope="module")
-def local_ray():
-    from pipeline.ray_engine import connect
-
-    yield connect(None, num_cpus=2)
-    ray.shutdown()
-
-
 class CrashOnce(ChunkEncoder):
     """Kills its worker process on the first chunk any actor runs."""
 

@@ -1,6 +1,6 @@
 """Parquet tables of the pipeline, each with a name and a schema version in its metadata.
 
-A path ending in `.arrow` is an Arrow IPC file instead (uncompressed, one record batch): the same table,
+A path ending in `.arrow` is an Arrow IPC file instead (uncompressed record batches): the same table,
 read memory-mapped, so a database's region descriptors are paged in as a query touches them instead of
 loaded whole. Readers refuse a table of another kind or of an unknown major version, and name the file. The
 column contracts are the ones in ARCHITECTURE.md; `docs/data-formats.md` documents them for users.
@@ -214,6 +214,17 @@ def descriptor_array(matrix) -> pa.FixedSizeListArray:
     return pa.FixedSizeListArray.from_arrays(pa.array(m.reshape(-1)), m.shape[1])
 
 
+def descriptor_chunks(table: pa.Table) -> list:
+    """The `descriptor` column as one (n_k, D) float32 array per chunk of the table, none copied where the
+    table is a memory-mapped `.arrow` file (one chunk per record batch)."""
+    import numpy as np
+
+    chunked = table.column("descriptor")
+    size = chunked.type.list_size
+    return [np.asarray(c.values.to_numpy(zero_copy_only=False), dtype=np.float32).reshape(-1, size)
+            for c in chunked.chunks] or [np.zeros((0, size), np.float32)]
+
+
 def descriptor_matrix(table: pa.Table):
     """The `descriptor` column of a table as an (N, D) float32 numpy array (no copy when possible: a view on a
     memory-mapped `.arrow` table, read-only)."""
@@ -299,18 +310,42 @@ def table_metadata(table: pa.Table) -> dict[str, str]:
 def read_table(path: Path, kind: str) -> pa.Table:
     """Read a table and check its kind, major schema version and columns."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(
-            f"{path}: {kind} table not found",
-            [Problem(str(path), "file is missing", fix="run the stage that writes it")],
-        )
+    _exists(path, kind)
     arrow = path.suffix == ".arrow"
     try:
         table = pa.ipc.open_file(pa.memory_map(str(path))).read_all() if arrow else pq.read_table(path)
     except (pa.ArrowInvalid, OSError) as exc:
         raise InputError(f"{path}: not a readable {'Arrow IPC' if arrow else 'Parquet'} file",
                          [Problem(str(path), str(exc))]) from None
+    _check_schema(path, kind, table.schema)
     meta = table.schema.metadata or {}
+    contract = _contract(kind, table)
+    return table.select(contract.names).cast(_with_metadata(contract, kind, None).with_metadata(meta))
+
+
+def read_table_schema(path: Path, kind: str) -> pa.Schema:
+    """The schema of a Parquet table, checked as `read_table` checks it, without reading its rows."""
+    path = Path(path)
+    _exists(path, kind)
+    try:
+        schema = pq.read_schema(path)
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise InputError(f"{path}: not a readable Parquet file", [Problem(str(path), str(exc))]) from None
+    _check_schema(path, kind, schema)
+    return schema
+
+
+def _exists(path: Path, kind: str) -> None:
+    if not path.is_file():
+        raise InputError(
+            f"{path}: {kind} table not found",
+            [Problem(str(path), "file is missing", fix="run the stage that writes it")],
+        )
+
+
+def _check_schema(path: Path, kind: str, schema: pa.Schema) -> None:
+    """Kind, major schema version and columns of a table's schema; InputError naming the file otherwise."""
+    meta = schema.metadata or {}
     found_kind = meta.get(_KIND_KEY, b"").decode()
     version = meta.get(_VERSION_KEY, b"").decode()
     problems = []
@@ -324,13 +359,11 @@ def read_table(path: Path, kind: str) -> pa.Table:
                 fix="re-run the stage that wrote it with this version",
             )
         )
-    missing = [n for n in SCHEMAS[kind].names if n not in table.column_names]
+    missing = [n for n in SCHEMAS[kind].names if n not in schema.names]
     if missing:
         problems.append(Problem(str(path), f"missing columns {missing}"))
-    elif "descriptor" in SCHEMAS[kind].names and not pa.types.is_fixed_size_list(table.schema.field("descriptor").type):
+    elif "descriptor" in SCHEMAS[kind].names and not pa.types.is_fixed_size_list(schema.field("descriptor").type):
         problems.append(Problem(str(path), "column 'descriptor' is not a fixed_size_list<float32>",
                                 fix="re-run `siteloc extract` with this version"))
     if problems:
         raise InputError(f"{path}: not a valid {kind} table", problems)
-    contract = _contract(kind, table)
-    return table.select(contract.names).cast(_with_metadata(contract, kind, None).with_metadata(meta))

@@ -36,13 +36,8 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
                     force: bool = False) -> Path:
     from pipeline.errors import OutputExistsError
     from pipeline.io.atomic import atomic_dir, write_text_atomic
-    from pipeline.retrieval.evaluate import (
-        fit_whitenings,
-        load_extracted,
-        region_rows,
-        split_database_queries,
-        whitened_database,
-    )
+    from pipeline.retrieval.evaluate import fit_whitenings, load_extracted, split_database_queries
+    from pipeline.retrieval.region_stream import whitened_parts
 
     r = cfg.retrieval
     out = Path(outputs["out"])
@@ -50,19 +45,22 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
         raise OutputExistsError(out)
     from pipeline.retrieval.backbones import recorded_backbone
 
-    ex = load_extracted(Path(inputs["descriptors"]))
+    # The regions stay on disk: sampled to fit their whitening, then whitened a batch at a time into the
+    # memory-mapped region file (a site of 10^6 images has ~45 GB of them).
+    ex = load_extracted(Path(inputs["descriptors"]), regions=False)
     backbone = recorded_backbone(Path(inputs["descriptors"]))
     db, _ = split_database_queries(ex)
     w_ipa, w_rpa = fit_whitenings(ex, db, r.whitening, r)
-    database = whitened_database(ex, db, w_ipa, w_rpa)
-    ids, ipa, rpa = database.image_ids, database.ipa, database.rpa
+    ids = [ex.image_ids[i] for i in db]
+    ipa = ex.ipa[db] if w_ipa is None else w_ipa.transform(ex.ipa[db])
+    keep = np.zeros(len(ex.image_ids), dtype=bool)
+    keep[db] = True
     with atomic_dir(out, force=force) as tmp:
         tables.write_table(tmp / "database_ipa.parquet", tables.to_table(
             "ipa", {"image_id": ids, "descriptor": tables.descriptor_array(ipa)}), "ipa")
-        regions = tables.read_table(Path(inputs["descriptors"]) / "rpa.parquet", "rpa").take(region_rows(ex, db))
-        regions = regions.set_column(regions.schema.get_field_index("descriptor"), "descriptor",
-                                     tables.descriptor_array(rpa))
-        tables.write_table(tmp / RPA_FILE, regions, "rpa")
+        regions = whitened_parts(ex.rpa_path, ex.offsets, keep, (lambda x: x) if w_rpa is None else w_rpa.transform)
+        n_regions = tables.write_table_parts(tmp / RPA_FILE, regions, "rpa")
+        rpa_dim = tables.read_table(tmp / RPA_FILE, "rpa").schema.field("descriptor").type.list_size
         tables.write_table(tmp / "catalog.parquet", tables.to_table("catalog", {
             "image_id": ids, "x": ex.poses[db, 0], "y": ex.poses[db, 1], "theta": ex.poses[db, 2],
             "group": ex.groups[db], "split": ex.splits[db]}), "catalog")
@@ -74,9 +72,9 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
 
             make_index(r.index, ipa, r.index_params).save(tmp / INDEX_FILE)
         write_text_atomic(tmp / "report.json", json.dumps({
-            "images": len(ids), "regions": int(len(rpa)), "whitening": r.whitening,
+            "images": len(ids), "regions": int(n_regions), "whitening": r.whitening,
             "index": r.index, "index_params": r.index_params.model_dump(),
-            "ipa_dim": int(ipa.shape[1]), "rpa_dim": int(rpa.shape[1]),
+            "ipa_dim": int(ipa.shape[1]), "rpa_dim": int(rpa_dim),
             "ipa_dim_limited_by": None if w_ipa is None else str(w_ipa.cap_reason_),
             "rpa_dim_limited_by": None if w_rpa is None else str(w_rpa.cap_reason_),
             **({"retrieval_backbone": backbone} if backbone else {})}, indent=2) + "\n")
@@ -110,7 +108,7 @@ def load_database(path: Path, *, index: str | None = None, params=None) -> Retri
     """The database of `build-index` at `path`, searched with `index` (null: the one it was built with, read
     from its ipa_index.faiss when saved; another kind is built now, with `params`)."""
     from pipeline.retrieval.index import INDEX_FILE, FaissIndex, make_index
-    from pipeline.retrieval.search import Database
+    from pipeline.retrieval.search import Database, as_rows
     from pipeline.retrieval.whitening import LearnedWhitening, PCAWhitening
 
     path = Path(path)
@@ -128,7 +126,7 @@ def load_database(path: Path, *, index: str | None = None, params=None) -> Retri
                          [Problem(str(rpa_path), "rows out of order or of unknown images",
                                   fix="re-run `siteloc build-index`")]) from None
     db = Database(ids, np.column_stack([cat["x"], cat["y"], cat["theta"]]), tables.descriptor_matrix(ipa_t),
-                  tables.descriptor_matrix(rpa_t), offsets)
+                  as_rows(tables.descriptor_chunks(rpa_t)), offsets, paged=rpa_path.suffix == ".arrow")
     settings = json.loads((path / "report.json").read_text())
     whitening = {"pca": PCAWhitening, "learned": LearnedWhitening}.get(settings["whitening"])
     w_ipa = whitening.load(path / "ipa_whitening.npz") if whitening else None

@@ -38,31 +38,48 @@ class Extracted:
     groups: np.ndarray
     splits: np.ndarray
     ipa: np.ndarray  # (N, D) l2-normalised, not whitened
-    rpa: np.ndarray  # (M, Dr), rows grouped by image in catalog order
+    rpa: np.ndarray | None  # (M, Dr), rows grouped by image in catalog order; None: left in rpa_path
     offsets: np.ndarray  # (N + 1,)
-    rpa_source: np.ndarray  # (M,)
-    rpa_score: np.ndarray  # (M,)
+    rpa_source: np.ndarray | None  # (M,)
+    rpa_score: np.ndarray | None  # (M,)
+    rpa_path: Path | None = None
+
+    def regions_at(self, rows: np.ndarray) -> np.ndarray:
+        """The region descriptors of the sorted region rows `rows`, from memory or read from the file."""
+        if self.rpa is not None:
+            return self.rpa[rows]
+        from pipeline.retrieval.region_stream import read_rows
+
+        return read_rows(self.rpa_path, rows)
 
 
-def load_extracted(path: Path) -> Extracted:
+def load_extracted(path: Path, *, regions: bool = True) -> Extracted:
+    """An extraction; `regions` False leaves the region table on disk (offsets only: `build-index` of a site
+    whose regions outgrow memory reads them a batch at a time, `pipeline.retrieval.region_stream`)."""
     path = Path(path)
     cat = tables.read_table(path / "catalog.parquet", "catalog").to_pydict()
     ipa_t = tables.read_table(path / "ipa.parquet", "ipa")
-    rpa_t = tables.read_table(path / "rpa.parquet", "rpa")
     ids = cat["image_id"]
     if ipa_t.column("image_id").to_pylist() != ids:
         raise InputError(f"{path}: ipa.parquet and catalog.parquet list different images",
                          [Problem(str(path / "ipa.parquet"), "image order differs", fix="re-run `siteloc extract`")])
+    poses = np.column_stack([cat["x"], cat["y"], cat["theta"]])
+    if not regions:
+        from pipeline.retrieval.region_stream import region_offsets_streamed
+
+        offsets = region_offsets_streamed(path / "rpa.parquet", ids)
+        return Extracted(ids, poses, np.asarray(cat["group"]), np.asarray(cat["split"]),
+                         tables.descriptor_matrix(ipa_t), None, offsets, None, None, path / "rpa.parquet")
+    rpa_t = tables.read_table(path / "rpa.parquet", "rpa")
     try:
         offsets = region_offsets(ids, rpa_t.column("image_id").to_pylist())
     except (ValueError, KeyError):
         raise InputError(f"{path}: rpa.parquet rows are not grouped by the catalog's images",
                          [Problem(str(path / "rpa.parquet"), "rows out of order or of unknown images",
                                   fix="re-run `siteloc extract`")]) from None
-    return Extracted(ids, np.column_stack([cat["x"], cat["y"], cat["theta"]]), np.asarray(cat["group"]),
-                     np.asarray(cat["split"]), tables.descriptor_matrix(ipa_t), tables.descriptor_matrix(rpa_t),
-                     offsets, np.asarray(rpa_t.column("source").to_pylist()),
-                     rpa_t.column("score").to_numpy())
+    return Extracted(ids, poses, np.asarray(cat["group"]), np.asarray(cat["split"]), tables.descriptor_matrix(ipa_t),
+                     tables.descriptor_matrix(rpa_t), offsets, np.asarray(rpa_t.column("source").to_pylist()),
+                     rpa_t.column("score").to_numpy(), path / "rpa.parquet")
 
 
 def split_database_queries(ex: Extracted) -> tuple[np.ndarray, np.ndarray]:
@@ -87,7 +104,7 @@ def fit_whitenings(ex: Extracted, db: np.ndarray, kind: str, cfg) -> tuple:
     db_rows = region_rows(ex, db)
     rng = np.random.default_rng(0)
     sample = rng.choice(db_rows, size=min(len(db_rows), 100_000), replace=False) if len(db_rows) else db_rows
-    rpa_w = PCAWhitening(cfg.rpa_dims).fit(ex.rpa[np.sort(sample)])
+    rpa_w = PCAWhitening(cfg.rpa_dims).fit(ex.regions_at(np.sort(sample)))
     if kind == "pca":
         return PCAWhitening(cfg.ipa_dims).fit(ex.ipa[db]), rpa_w
     pairs = geo_pairs(ex.poses[db, :2], ex.poses[db, 2], ex.groups[db], max_distance=cfg.pair_distance,

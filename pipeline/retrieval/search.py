@@ -15,11 +15,45 @@ numpy only (the runtime imports this; no torch). Descriptors arrive whitened and
 
 from __future__ import annotations
 
+import ctypes
 from dataclasses import dataclass
 
 import numpy as np
 
 from pipeline.retrieval.index import ExactIndex, FaissIndex, make_index  # noqa: F401  (the first stage)
+
+
+class ChunkedRows:
+    """Several (n_k, D) arrays sliced as one (sum n_k, D) matrix, without joining them: the record batches of a
+    memory-mapped region file. A slice within one array is a view of it; across arrays, a copy of its rows."""
+
+    def __init__(self, chunks: list[np.ndarray]):
+        self.chunks = list(chunks)
+        self.starts = np.concatenate([[0], np.cumsum([len(c) for c in self.chunks])]).astype(np.int64)
+        self.shape = (int(self.starts[-1]), int(self.chunks[0].shape[1]))
+        self.dtype = self.chunks[0].dtype
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key: slice) -> np.ndarray:
+        lo, hi, step = key.indices(self.shape[0])
+        if step != 1:
+            raise IndexError("ChunkedRows takes contiguous slices")
+        hi = max(hi, lo)
+        first = int(np.searchsorted(self.starts, lo, side="right")) - 1
+        if first >= len(self.chunks) or hi <= self.starts[first + 1]:
+            k = min(first, len(self.chunks) - 1)
+            return self.chunks[k][lo - self.starts[k]:hi - self.starts[k]]
+        last = int(np.searchsorted(self.starts, hi, side="left")) - 1
+        return np.concatenate([self.chunks[k][max(lo, self.starts[k]) - self.starts[k]:
+                                              min(hi, self.starts[k + 1]) - self.starts[k]]
+                               for k in range(first, last + 1)])
+
+
+def as_rows(chunks: list[np.ndarray]):
+    """One array as it is; several as ChunkedRows."""
+    return chunks[0] if len(chunks) == 1 else ChunkedRows(chunks)
 
 
 @dataclass
@@ -29,8 +63,9 @@ class Database:
     image_ids: list[str]
     poses: np.ndarray  # (N, 3) x, y, theta in the map frame
     ipa: np.ndarray  # (N, D)
-    rpa: np.ndarray  # (M, Dr)
+    rpa: np.ndarray | ChunkedRows  # (M, Dr)
     offsets: np.ndarray  # (N + 1,)
+    paged: bool = False  # rpa is memory-mapped from a file: re-ranking asks for the Top-N's pages at once
 
     def regions(self, i: int) -> np.ndarray:
         return self.rpa[self.offsets[i]:self.offsets[i + 1]]
@@ -69,9 +104,47 @@ def region_score(query_regions: np.ndarray, db_regions: np.ndarray) -> float:
     return float(np.mean(np.max(query_regions @ db_regions.T, axis=1)))
 
 
+def will_need(arrays: list[np.ndarray]) -> int:
+    """Ask the OS to start reading the pages of these memory-mapped arrays now, all at once (madvise
+    MADV_WILLNEED: asynchronous read-ahead), so that touching them next waits for one disk round, not one per
+    array. A no-op where the C library has no madvise. The standard library's mmap.madvise needs the mmap
+    object, which numpy views of an Arrow memory map do not carry; so libc's, on their addresses. Returns the
+    arrays the OS took the advice for."""
+    libc = _libc()
+    if libc is None:
+        return 0
+    taken = 0
+    for a in arrays:
+        if a.nbytes == 0:
+            continue
+        start = a.ctypes.data & ~(PAGE - 1)
+        taken += libc.madvise(ctypes.c_void_p(start), ctypes.c_size_t(a.ctypes.data + a.nbytes - start),
+                              MADV_WILLNEED) == 0
+    return taken
+
+
+PAGE, MADV_WILLNEED = 4096, 3  # Linux and macOS values
+_LIBC: list = []
+
+
+def _libc():
+    if not _LIBC:
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.madvise.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
+            _LIBC.append(libc)
+        except (OSError, AttributeError):
+            _LIBC.append(None)
+    return _LIBC[0]
+
+
 def rerank(db: Database, first: np.ndarray, query_regions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(final order, region score of each `first` entry): Top-N sorted by region score, ties by IPA rank."""
-    scores = np.array([region_score(query_regions, db.regions(int(i))) for i in first])
+    """(final order, region score of each `first` entry): Top-N sorted by region score, ties by IPA rank.
+    A paged database first asks for all the Top-N's region pages at once (`will_need`)."""
+    regions = [db.regions(int(i)) for i in first]
+    if db.paged:
+        will_need(regions)
+    scores = np.array([region_score(query_regions, r) for r in regions])
     order = np.lexsort((np.arange(len(first)), -scores))
     return np.asarray(first)[order], scores
 

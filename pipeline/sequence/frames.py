@@ -116,7 +116,7 @@ def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
 
     partial = out.with_name(out.name + ".partial")
     todo_paths = [data / ids[k] for k in todo]
-    open_partial(partial, {"stage": "frame-features", "encoder": key, "chunk": s.chunk}, todo_paths)
+    open_partial(partial, {"stage": "frame-features", "encoder": key, "chunk": s.chunk, "batch": s.batch}, todo_paths)
     if todo:
         fresh, graphs = _encode_frames(enc, engine, todo_paths, s.batch, cfg.export.parity_images, progress, partial,
                                        s.chunk, executor, ray_address)

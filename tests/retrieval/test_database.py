@@ -86,3 +86,33 @@ def test_a_database_whose_regions_are_out_of_order_is_refused_naming_the_file(tm
     tables.write_table(tmp_path / "db" / "database_rpa.arrow", t.take(np.arange(t.num_rows)[::-1].copy()), "rpa")
     with pytest.raises(InputError, match="database_rpa.arrow does not follow"):
         load_database(tmp_path / "db")
+
+
+def test_a_paged_database_reads_its_regions_concurrently_with_the_same_answer(tmp_path):
+    _write_database(tmp_path / "arrow")
+    _write_database(tmp_path / "parquet", rpa_file="database_rpa.parquet")
+    mapped = load_database(tmp_path / "arrow")
+    assert mapped.db.paged and not load_database(tmp_path / "parquet").db.paged
+    rng = np.random.default_rng(2)
+    for _ in range(5):
+        q, regions = l2_normalize(rng.normal(size=16)), l2_normalize(rng.normal(size=(4, 16)))
+        mapped.db.paged = True
+        a = query_database(mapped, q, regions, top_n=30)
+        mapped.db.paged = False
+        b = query_database(mapped, q, regions, top_n=30)
+        np.testing.assert_array_equal(a.region_scores, b.region_scores)
+        np.testing.assert_array_equal(a.ranked, b.ranked)
+
+
+def test_will_need_advises_each_mapped_range(tmp_path):
+    import sys
+
+    from pipeline.retrieval.search import will_need
+
+    _write_database(tmp_path / "arrow", n=50)
+    db = load_database(tmp_path / "arrow").db
+    views = [db.regions(i) for i in range(50)]
+    taken = will_need(views)
+    if sys.platform.startswith("linux"):
+        assert taken == sum(v.nbytes > 0 for v in views) == 50
+    assert will_need([np.zeros((0, 16), np.float32)]) == 0

@@ -18,13 +18,6 @@ from pipeline.retrieval.extract_ray import ChunkDescriber
 ray = pytest.importorskip("ray")
 
 
-@pytest.fixture(scope="module")
-def local_ray():
-    from pipeline.ray_engine import connect
-
-    yield connect(None, num_cpus=2)
-    ray.shutdown()
-
 
 def _same_tables(a: Path, b: Path) -> None:
     for kind in ("ipa", "rpa"):

@@ -18,13 +18,6 @@ pytestmark = pytest.mark.skipif(not egl_available()[0], reason="no headless EGL 
 ray = pytest.importorskip("ray")
 
 
-@pytest.fixture(scope="module")
-def local_ray():
-    from pipeline.ray_engine import connect
-
-    yield connect(None, num_cpus=2)
-    ray.shutdown()
-
 
 class CrashOnce(RenderActor):
     """Kills its worker process on the first batch any actor renders (the marker beside the site's output)."""
