@@ -49,9 +49,8 @@ class Executor(StrEnum):
 
 EngineOpt = Annotated[Executor, typer.Option(
     "--engine",
-    help="local: in this process (a pool of onnxruntime sessions, or torch); ray: Ray actors, on this machine or on "
-         "the cluster at --ray-address (needs the ray extra: pip install siteloc\\[ray]); the same output either way, "
-         "and either resumes the other's interrupted run.")]
+    help="local: this machine's own pool of workers; ray: Ray actors, on this machine or on the cluster at "
+         "--ray-address (needs the ray extra: pip install siteloc\\[ray]); the same output either way.")]
 RayAddressOpt = Annotated[str | None, typer.Option(
     "--ray-address", show_default=False,
     help="With --engine ray: a running cluster (host:6379, or auto); without it a local Ray is started.")]
