@@ -81,21 +81,19 @@ def encode_in_chunks(paths: Sequence[Path], partial: Path, chunk: int, encode: E
     paths = [Path(p) for p in paths]
     chunks = [paths[i:i + chunk] for i in range(0, len(paths), chunk)]
     pending = [k for k in range(len(chunks)) if not chunk_path(partial, k).is_file()]
-    bar.update(sum(len(c) for k, c in enumerate(chunks) if k not in set(pending)))
+    todo = set(pending)
+    bar.update(sum(len(c) for k, c in enumerate(chunks) if k not in todo))
     if executor == "local":
         for k in pending:
             write_chunk(partial, k, encode(chunks[k]))
             bar.update(len(chunks[k]))
     elif executor == "ray":
         if pending:
-            from pipeline.machine import usable_core_count
-            from pipeline.ray_engine import connect, run_chunks
+            from pipeline.ray_engine import run_on_ray
 
             built = spec()
-            ray = connect(ray_address, num_cpus=None if ray_address else usable_core_count())
-            workers = max(1, min(len(pending), int(ray.available_resources().get("CPU", 1))))
-            run_chunks(ray, [{"chunk": k, "paths": [str(p) for p in chunks[k]]} for k in pending], ChunkEncoder,
-                       {"partial": str(partial), "spec": built}, workers=workers, on_done=lambda _k, n: bar.update(n))
+            run_on_ray(ray_address, [{"chunk": k, "paths": [str(p) for p in chunks[k]]} for k in pending],
+                       ChunkEncoder, {"partial": str(partial), "spec": built}, on_done=lambda _k, n: bar.update(n))
     else:
         raise ValueError(f"executor must be local or ray, got '{executor}'")
     parts = [read_chunk(partial, k) for k in range(len(chunks))]

@@ -63,6 +63,17 @@ def run_chunks(ray, chunks: Iterable[dict], actor: type, actor_kwargs: dict, *, 
         on_done(int(row["chunk"]), int(row["items"]))
 
 
+def run_on_ray(ray_address: str | None, chunks: list[dict], actor: type, actor_kwargs: dict, *,
+               on_done: Callable[[int, int], None]) -> None:
+    """`run_chunks` on the cluster at `ray_address` (None: a local Ray on the usable cores), one actor per CPU
+    (at most one per chunk)."""
+    from pipeline.machine import usable_core_count
+
+    ray = connect(ray_address, num_cpus=None if ray_address else usable_core_count())
+    workers = max(1, min(len(chunks), int(ray.available_resources().get("CPU", 1))))
+    run_chunks(ray, chunks, actor, actor_kwargs, workers=workers, on_done=on_done)
+
+
 def _reachable(address: str, timeout_s: float = 5.0) -> None:
     """Refuse an address whose port does not answer (ray://host:port or host:port)."""
     import socket

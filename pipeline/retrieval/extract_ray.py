@@ -56,25 +56,16 @@ def extract_on_ray(chunks: list[list[ImageRecord]], partial: Path, ingested: Pat
                    ray_address: str | None = None, actor: type = ChunkDescriber) -> list[str]:
     """Describe the chunks not yet in `partial` on Ray; `pool` (extract's `onnx_describer`) exports the graphs.
     Returns the image ids described."""
-    from PIL import Image
-
-    from pipeline.machine import usable_core_count
-    from pipeline.ray_engine import connect, run_chunks
+    from pipeline.chunked_encoding import export_graphs
+    from pipeline.ray_engine import run_on_ray
 
     pending = [k for k in range(len(chunks)) if not chunk_done(partial, k)]
-    bar.update(sum(len(c) for k, c in enumerate(chunks) if k not in set(pending)))
+    todo = set(pending)
+    bar.update(sum(len(c) for k, c in enumerate(chunks) if k not in todo))
     if not pending:
         return []
-    first: dict[tuple[int, int], Path] = {}  # one image of each size: the graphs are exported for those
-    for k in pending:
-        for rec in chunks[k]:
-            with Image.open(ingested / rec.image_id) as im:
-                first.setdefault((im.height, im.width), ingested / rec.image_id)
-    pool(list(first.values()))
-    graphs = {key: (str(path), info) for key, (path, info) in pool.graph_files().items()}
-    ray = connect(ray_address, num_cpus=None if ray_address else usable_core_count())
-    workers = max(1, min(len(pending), int(ray.available_resources().get("CPU", 1))))
-    run_chunks(ray, [{"chunk": k, "image_ids": [rec.image_id for rec in chunks[k]]} for k in pending], actor,
-               {"partial": str(partial), "ingested": str(ingested), "graphs": graphs}, workers=workers,
+    graphs = export_graphs([ingested / rec.image_id for k in pending for rec in chunks[k]], pool)
+    run_on_ray(ray_address, [{"chunk": k, "image_ids": [rec.image_id for rec in chunks[k]]} for k in pending], actor,
+               {"partial": str(partial), "ingested": str(ingested), "graphs": graphs},
                on_done=lambda _k, n: bar.update(n))
     return [rec.image_id for k in pending for rec in chunks[k]]
