@@ -9,7 +9,7 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, load, set_opt
+from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, load, print_tables, set_opt
 
 INGEST_HELP = """Turn robot recordings (ROS 1 .bag, ROS 2 bag folders with sqlite3 or mcap storage, bare .mcap /
 .db3 files) into a site capture directory that `siteloc ingest` takes unchanged.
@@ -85,13 +85,11 @@ def _pairs(values: list[str] | None, what: str, number: bool = False) -> dict:
 
 
 def _print_inventory(paths: list[Path]) -> None:
-    from rich.console import Console
     from rich.table import Table
 
     from pipeline.rosbag.bagfile import find_bags
     from pipeline.rosbag.inventory import inventory
 
-    console = Console(width=max(Console().width, 110))
     for p in find_bags(paths):
         inv = inventory(p)
         t = Table(title=f"{inv['name']}: {inv['storage']}, {inv['duration_s']:.1f} s, {inv['messages']} messages")
@@ -100,7 +98,7 @@ def _print_inventory(paths: list[Path]) -> None:
         for topic, i in inv["topics"].items():
             t.add_row(topic, i["type"], str(i["count"]), "-" if i["rate_hz"] is None else f"{i['rate_hz']:.1f}",
                       i["role"] or "-")
-        console.print(t)
+        print_tables(t, min_width=110)
 
 
 def ingest_bag(

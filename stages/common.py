@@ -56,6 +56,17 @@ RayAddressOpt = Annotated[str | None, typer.Option(
     help="With --engine ray: a running cluster (host:6379, or auto); without it a local Ray is started.")]
 
 
+def print_tables(*tables, min_width: int = 0) -> None:
+    """Rich tables on stdout. In a terminal at least `min_width` wide; elsewhere (a CI log, a pipe, a file) as
+    wide as their content, so no cell wraps into lines of its neighbours, and without colour codes."""
+    from rich.console import Console
+
+    console = (Console(width=max(Console().width, min_width)) if sys.stdout.isatty()
+               else Console(width=1000, no_color=True, force_terminal=False))
+    for table in tables:
+        console.print(table)
+
+
 def engine_args(engine: Executor, ray_address: str | None) -> dict:
     """run_<stage>'s executor keywords; --ray-address without --engine ray is a ConfigError."""
     if ray_address is not None and engine != Executor.RAY:

@@ -6,7 +6,7 @@ from typing import Annotated
 
 import typer
 
-from stages.common import VerboseOpt, cli_errors, load
+from stages.common import VerboseOpt, cli_errors, load, print_tables
 
 HELP = """Run the main job end to end: the DVC pipeline of dvc.yaml, stage by stage, with a summary.
 
@@ -43,7 +43,6 @@ def demo(
     verbose: VerboseOpt = False,
 ) -> None:
     with cli_errors(verbose):
-        from rich.console import Console
         from rich.table import Table
 
         from pipeline.demo import PARAMS, project_root, run_demo, write_params
@@ -67,7 +66,7 @@ def demo(
         for s in steps:
             table.add_row(s.name.removesuffix("-corrected"), *_describe(s.report), "reused" if s.reused else "done",
                           _duration(s.seconds))
-        Console().print(table)
+        print_tables(table)
         typer.echo(f"total: {_duration(sum(s.seconds for s in steps))}")
         typer.echo("endpoints on walls: share of scan endpoints on occupied map cells, exact / within one cell")
 

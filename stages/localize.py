@@ -9,7 +9,7 @@ from typing import Annotated
 
 import typer
 
-from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, load, set_opt
+from stages.common import ConfigOpt, ForceOpt, VerboseOpt, cli_errors, echo_path, load, print_tables, set_opt
 
 HELP = """Replay recorded runs through the runtime filter (adaptive MCL on the laser map) and measure it.
 
@@ -118,7 +118,6 @@ def localize(
             result = run_localize(cfg, inputs={"data": data}, outputs={"out": out}, runs=run, bundle=bundle,
                                   progress=sys.stderr.isatty(), **kw)
         doc = json.loads((result / "metrics.json").read_text())
-        from rich.console import Console
         from rich.table import Table
 
         table = Table(title=f"siteloc localize: init {init}, {doc['method']}, {doc['sensor_model']}",
@@ -140,5 +139,5 @@ def localize(
                           f(s["within_threshold_share_median"], "{:.0%}"), f(s["error_median_m"]),
                           f(s["error_median_all_m"]), f(s["ape_rmse_m_median"]), f"{s['recovered']}/{s['kidnaps']}",
                           f(s["recovery_steps_median"], "{:.0f}"), f(s["update_ms_mean"], "{:.1f}"))
-        Console(width=max(Console().width, 150)).print(table)
+        print_tables(table, min_width=150)
         echo_path("output", result)

@@ -221,3 +221,20 @@ def test_config_show_and_check():
     assert runner.invoke(app, ["config", "check", "--config", "ci"]).exit_code == 0
     result = runner.invoke(app, ["config", "check", "--config", "nope"])
     assert result.exit_code == 1 and "unknown preset" in result.output
+
+
+def test_summary_tables_do_not_wrap_outside_a_terminal(capsys):
+    """A CI log or a pipe gets each row on one line, whole, without colour codes (a terminal: rich's layout)."""
+    from rich.table import Table
+
+    from stages.common import print_tables
+
+    cell = "a long result " * 20
+    table = Table(title="summary")
+    for col in ("stage", "result"):
+        table.add_column(col)
+    table.add_row("extract", cell.strip())
+    print_tables(table, min_width=150)
+    out = capsys.readouterr().out
+    assert any(cell.strip() in line and "extract" in line for line in out.splitlines())
+    assert "\x1b[" not in out

@@ -212,7 +212,7 @@ def open_render_context(preset, seed: int, change: bool | ChangeSpec, allow_fall
     from pipeline.sitegen.decals import SiteTextures
     from pipeline.sitegen.geometry import object_meshes, structure_meshes
     from pipeline.sitegen.render import Renderer
-    from pipeline.sitegen.synth import build_scene, intrinsics_of
+    from pipeline.sitegen.site_scene import build_scene, intrinsics_of
 
     scene = scene if scene is not None else build_scene(preset, seed, change, change_areas)
     library = library if library is not None else load_assets(tuple(preset.furnishing.classes),

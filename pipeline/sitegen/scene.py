@@ -5,7 +5,7 @@ from the floor. The plan is a grid of corridors (every corridor line spans the w
 form loops) with a band of rooms along the outer walls and rows of rooms facing the corridors inside
 the blocks between them. Rooms repeat a few standard sizes and furnishings, doors and windows repeat
 along the corridors, and the layout is mirror-symmetric up to small random jitter: hard in the way real
-office floors are hard. The same preset and seed always give the same scene (`synth.build_scene`).
+office floors are hard. The same preset and seed always give the same scene (`site_scene.build_scene`).
 """
 
 from __future__ import annotations

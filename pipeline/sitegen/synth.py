@@ -24,16 +24,9 @@ from pipeline.io.atomic import atomic_dir, write_text_atomic
 from pipeline.io.map_yaml import write_map
 from pipeline.machine import machine_summary
 from pipeline.sitegen.presets import SitePreset
+from pipeline.sitegen.site_scene import build_scene, intrinsics_of
 
 TIMING_FILE = "synth_timing.json"  # the one output that is not reproducible byte for byte
-
-
-def intrinsics_of(preset: SitePreset):
-    from pipeline.sitegen.camera import Intrinsics
-
-    cam = preset.camera
-    fx = (cam.width / 2) / math.tan(math.radians(cam.hfov_deg) / 2)
-    return Intrinsics(cam.width, cam.height, fx, fx, cam.width / 2, cam.height / 2)
 
 
 def site_yaml(preset: SitePreset, scene_name: str) -> dict:
@@ -93,22 +86,6 @@ def preset_record(preset: SitePreset) -> dict:
     if effects_record(preset) is None:
         dump["camera"].pop("effects")
     return dump
-
-
-def build_scene(preset: SitePreset, seed: int, change, change_areas: tuple[str, ...] = ()):
-    """The site's scene; with `change`, after the environment change (only in `change_areas` when given).
-    `change` is a bool (True: the change of the default `ChangeSpec`) or a `ChangeSpec` (e.g. one that moves a
-    wall too): the render workers rebuild the scene from what `RenderPool` hands them, so it says everything."""
-    from pipeline.sitegen.change import ChangeSpec, change_scene
-    from pipeline.sitegen.furnish import furnish_scene
-    from pipeline.sitegen.layout import generate_plan
-
-    scene = furnish_scene(generate_plan(preset, seed), preset, seed)
-    if change:
-        spec = change if isinstance(change, ChangeSpec) else ChangeSpec()
-        scene = change_scene(scene, seed, spec, poster_pictures=preset.furnishing.poster_pictures,
-                             unique_pictures=preset.identity.unique_pictures, areas=tuple(change_areas))
-    return scene
 
 
 def check_areas(scene, areas: tuple[str, ...], option: str) -> None:
