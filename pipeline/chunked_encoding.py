@@ -136,30 +136,81 @@ def export_graphs(paths: Sequence[Path], pool) -> dict[str, tuple[str, dict]]:
     return {key: (str(path), info) for key, (path, info) in pool.graph_files().items()}
 
 
+class SizedSessions:
+    """One single-threaded onnxruntime session per image size (one actor per core), opened on first use from
+    the exported graphs ("<W>x<H>" -> (file, info)); an image of a size without a graph is refused."""
+
+    def __init__(self, graphs: dict[str, tuple[str, dict]]):
+        self.graphs, self.sessions = graphs, {}
+
+    def __call__(self, path: Path) -> tuple[object, np.ndarray, dict]:
+        """(session, image, the graph's info) for the image file at `path`."""
+        from pipeline.runtime.describer import image_array
+
+        image = image_array(path)
+        key = f"{image.shape[2]}x{image.shape[1]}"
+        if key not in self.graphs:
+            raise SitelocError(f"{path}: an image of {key} pixels, for which no graph was exported "
+                               f"(sizes: {sorted(self.graphs)})")
+        if key not in self.sessions:
+            import onnxruntime as ort
+
+            options = ort.SessionOptions()
+            options.intra_op_num_threads = 1
+            options.inter_op_num_threads = 1
+            self.sessions[key] = ort.InferenceSession(self.graphs[key][0], options,
+                                                      providers=["CPUExecutionProvider"])
+        return self.sessions[key], image, self.graphs[key][1]
+
+
 def graph_encoder(graphs: dict[str, tuple[str, dict]], outputs: list[str]) -> Encode:
-    """An `Encode` running each image through its size's graph (onnxruntime, one thread: one actor per core)
-    and naming the graph's outputs `outputs`."""
-    import onnxruntime as ort
-
-    from pipeline.runtime.describer import image_array
-
-    sessions: dict[str, object] = {}
+    """An `Encode` running each image through its size's graph and naming the graph's outputs `outputs`."""
+    sessions = SizedSessions(graphs)
 
     def encode(paths: list[Path]) -> dict[str, np.ndarray]:
         rows: dict[str, list] = {name: [] for name in outputs}
         for p in paths:
-            image = image_array(p)
-            key = f"{image.shape[2]}x{image.shape[1]}"
-            if key not in graphs:
-                raise SitelocError(f"{p}: an image of {key} pixels, for which no graph was exported "
-                                   f"(sizes: {sorted(graphs)})")
-            if key not in sessions:
-                options = ort.SessionOptions()
-                options.intra_op_num_threads = 1
-                options.inter_op_num_threads = 1
-                sessions[key] = ort.InferenceSession(graphs[key][0], options, providers=["CPUExecutionProvider"])
-            for name, value in zip(outputs, sessions[key].run(None, {"image": image}), strict=True):
+            session, image, _ = sessions(p)
+            for name, value in zip(outputs, session.run(None, {"image": image}), strict=True):
                 rows[name].append(value)
         return {name: np.stack(v) for name, v in rows.items()}
 
     return encode
+
+
+def encode_with_graphs(name: str, build: Callable[[tuple[int, int], list, Path], dict], outputs: list[str],
+                       paths: Sequence[Path], partial: Path, chunk: int, bar, *, samples: int, executor: str = "local",
+                       ray_address: str | None = None) -> tuple[dict[str, np.ndarray], dict]:
+    """`encode_in_chunks` through ONNX graphs: `build(image_hw, sample_images, path)` exports and checks one per
+    image size (`pipeline.onnx_threads.SizedGraphPool`), whose outputs are `outputs`; locally the pool's threads
+    run them, on Ray each actor opens the same files (`graph_encoder`). Returns the arrays and, when graphs were
+    exported, the pool's layout and their parity figures (the graphs themselves live in a temporary directory:
+    the bundle exports its own)."""
+    import tempfile
+
+    from pipeline.onnx_threads import SizedGraphPool
+
+    def run(session, image: np.ndarray, _info: dict) -> list[np.ndarray]:
+        return session.run(None, {"image": image})
+
+    with tempfile.TemporaryDirectory(prefix=f"siteloc-{name}-") as workdir, \
+            SizedGraphPool(name, Path(workdir), build, run, samples=samples) as pool:
+        def encode(files: list[Path]) -> dict[str, np.ndarray]:
+            out = pool(files)
+            return {key: np.stack([o[i] for o in out]) for i, key in enumerate(outputs)}
+
+        def spec() -> EncoderSpec:
+            return EncoderSpec(graph_encoder, {"graphs": export_graphs(paths, pool), "outputs": list(outputs)})
+
+        arrays = encode_in_chunks(paths, partial, chunk, encode, bar, executor=executor, spec=spec,
+                                  ray_address=ray_address)
+        graphs = {"workers": pool.workers, "threads_per_worker": pool.threads, "graphs": pool.graphs}
+    return arrays, graphs if graphs["graphs"] else {}
+
+
+def refuse_torch_on_ray(engine: str, executor: str, setting: str) -> None:
+    """`--engine ray` runs exported graphs: a ConfigError naming `setting` when the stage's engine is torch."""
+    if engine == "torch" and executor == "ray":
+        from pipeline.errors import ConfigError
+
+        raise ConfigError(f"--engine ray runs the exported ONNX graph: set {setting} to auto (on a CPU) or onnx")

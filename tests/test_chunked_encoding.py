@@ -155,3 +155,13 @@ def test_prior_features_on_ray_write_the_local_vectors(local_ray, micro_site, tm
     assert ma == mb and len(ma["image_id"]) > 16
     for layer in ra:
         np.testing.assert_array_equal(ra[layer], rb[layer])
+
+
+def test_torch_on_ray_is_refused_naming_the_setting():
+    from pipeline.chunked_encoding import refuse_torch_on_ray
+    from pipeline.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="set prior.engine to auto"):
+        refuse_torch_on_ray("torch", "ray", "prior.engine")
+    refuse_torch_on_ray("torch", "local", "prior.engine")
+    refuse_torch_on_ray("onnx", "ray", "prior.engine")

@@ -84,43 +84,20 @@ def batched_encode(enc, batch: int):
 def _encode(enc, engine: str, paths: list[Path], partial: Path, chunk: int, batch: int, samples: int, bar,
             executor: str, ray_address: str | None) -> tuple[dict[str, np.ndarray], dict]:
     """{layer: vectors} of `paths` in resumable chunks, and with onnx the graphs' parity figures."""
-    import tempfile
+    from pipeline.chunked_encoding import encode_in_chunks, encode_with_graphs, refuse_torch_on_ray
 
-    from pipeline.chunked_encoding import EncoderSpec, encode_in_chunks, export_graphs, graph_encoder
-
+    refuse_torch_on_ray(engine, executor, "prior.engine")
     if engine == "torch":
-        if executor == "ray":
-            from pipeline.errors import ConfigError
-
-            raise ConfigError("--engine ray runs the exported ONNX graph: set prior.engine to auto (on a CPU) or "
-                              "onnx")
         return encode_in_chunks(paths, partial, chunk, batched_encode(enc, batch), bar), {}
     import torch
 
-    from pipeline.onnx_threads import SizedGraphPool
     from pipeline.prior.onnx_export import export_prior_encoder
-
-    layers = list(enc.layers)
 
     def build(hw: tuple[int, int], images: list, path: Path) -> dict:
         return export_prior_encoder(enc, hw, path, [torch.from_numpy(im) for im in images])["parity"]
 
-    def run(session, image: np.ndarray, _info: dict) -> list[np.ndarray]:
-        return session.run(None, {"image": image})
-
-    with tempfile.TemporaryDirectory(prefix="siteloc-prior-") as workdir, \
-            SizedGraphPool("prior", Path(workdir), build, run, samples=samples) as pool:
-        def encode(files: list[Path]) -> dict[str, np.ndarray]:
-            out = pool(files)
-            return {name: np.stack([o[i] for o in out]) for i, name in enumerate(layers)}
-
-        def spec() -> EncoderSpec:
-            return EncoderSpec(graph_encoder, {"graphs": export_graphs(paths, pool), "outputs": layers})
-
-        vectors = encode_in_chunks(paths, partial, chunk, encode, bar, executor=executor, spec=spec,
-                                   ray_address=ray_address)
-        graphs = {"workers": pool.workers, "threads_per_worker": pool.threads, "graphs": pool.graphs}
-    return vectors, graphs if graphs["graphs"] else {}
+    return encode_with_graphs("prior", build, list(enc.layers), paths, partial, chunk, bar, samples=samples,
+                              executor=executor, ray_address=ray_address)
 
 
 def run_prior_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],

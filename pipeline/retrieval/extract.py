@@ -199,12 +199,10 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
             if reuse is not None:
                 raise SitelocError("--reuse with --engine ray: not supported yet; extract the changed site "
                                    "locally (the default engine), which describes only its new images")
-            if engine != "onnx":
-                from pipeline.errors import ConfigError
-
-                raise ConfigError("--engine ray runs the exported ONNX graph: set retrieval.engine to auto (on a "
-                                  "CPU) or onnx")
+            from pipeline.chunked_encoding import refuse_torch_on_ray
             from pipeline.retrieval.extract_ray import extract_on_ray
+
+            refuse_torch_on_ray(engine, executor, "retrieval.engine")
 
             pool = onnx_describer(det, partial, rpa_proposals=r.rpa_proposals, rpa_min_score=r.rpa_min_score,
                                   samples=cfg.export.parity_images, backbone=backbone)
@@ -250,9 +248,9 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
             **({"onnx": {"workers": pool.workers, "threads_per_worker": pool.threads, "graphs": pool.graphs}}
                if pool is not None and pool.graphs else {})}, indent=2) + "\n")
         write_effective_config(cfg, tmp, stage="extract", inputs=inputs)
-    for p in partial.iterdir():
-        p.unlink()
-    partial.rmdir()
+    from pipeline.chunked_encoding import close_partial
+
+    close_partial(partial)
     return out
 
 

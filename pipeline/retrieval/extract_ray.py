@@ -19,36 +19,16 @@ class ChunkDescriber:
     """A Ray actor: describes one chunk per call through the exported graphs and writes its tables."""
 
     def __init__(self, partial: str, ingested: str, graphs: dict[str, tuple[str, dict]]):
-        self.partial, self.ingested, self.graphs = Path(partial), Path(ingested), graphs
-        self.sessions: dict[str, object] = {}
+        from pipeline.chunked_encoding import SizedSessions
 
-    def _session(self, key: str):
-        if key not in self.sessions:
-            import onnxruntime as ort
-
-            options = ort.SessionOptions()
-            options.intra_op_num_threads = 1
-            options.inter_op_num_threads = 1
-            self.sessions[key] = ort.InferenceSession(self.graphs[key][0], options,
-                                                      providers=["CPUExecutionProvider"])
-        return self.sessions[key]
+        self.partial, self.ingested, self.sessions = Path(partial), Path(ingested), SizedSessions(graphs)
 
     def __call__(self, batch: dict) -> dict:
-        from pipeline.runtime.describer import describe_with, image_array
+        from pipeline.runtime.describer import describe_with
 
         k = int(batch["chunk"][0])
         ids = [str(i) for i in batch["image_ids"][0]]
-        described = []
-        for image_id in ids:
-            image = image_array(self.ingested / image_id)
-            key = f"{image.shape[2]}x{image.shape[1]}"
-            if key not in self.graphs:
-                from pipeline.errors import SitelocError
-
-                raise SitelocError(f"{self.ingested / image_id}: an image of {key} pixels, for which no graph was "
-                                   f"exported (sizes: {sorted(self.graphs)})")
-            described.append(describe_with(self._session(key), image, self.graphs[key][1]))
-        write_chunk(self.partial, k, ids, described)
+        write_chunk(self.partial, k, ids, [describe_with(*self.sessions(self.ingested / i)) for i in ids])
         return {"chunk": np.array([k]), "items": np.array([len(ids)])}
 
 

@@ -146,54 +146,33 @@ def _encode_frames(enc: FrameEncoder, engine: str, paths: list[Path], batch: int
                    partial: Path, chunk: int, executor: str = "local", ray_address: str | None = None
                    ) -> tuple[np.ndarray, dict]:
     """(N, 1000) logits of the frame files, in resumable chunks under `partial` (`pipeline.chunked_encoding`),
-    and, with onnx, the graphs' parity figures (the graphs themselves live in a temporary directory: the bundle
-    exports its own)."""
-    import tempfile
-
+    and, with onnx, the graphs' parity figures."""
     import torch
 
-    from pipeline.chunked_encoding import EncoderSpec, encode_in_chunks, export_graphs, graph_encoder
+    from pipeline.chunked_encoding import encode_in_chunks, encode_with_graphs, refuse_torch_on_ray
     from pipeline.detection.inference import load_image
     from pipeline.progress import progress_bar
 
+    refuse_torch_on_ray(engine, executor, "sequence.engine")
     where = f"{engine}, ray" if executor == "ray" else engine
     bar = progress_bar(total=len(paths), desc=f"frame features ({where})", unit="frame", enabled=progress)
     graphs = {}
     try:
         if engine == "torch":
-            if executor == "ray":
-                from pipeline.errors import ConfigError
-
-                raise ConfigError("--engine ray runs the exported ONNX graph: set sequence.engine to auto (on a "
-                                  "CPU) or onnx")
-
             def encode(files: list[Path]) -> dict[str, np.ndarray]:
                 return {"logits": np.vstack([enc([load_image(p) for p in files[i:i + batch]])
                                              for i in range(0, len(files), batch)])}
 
             logits = encode_in_chunks(paths, partial, chunk, encode, bar)["logits"]
         else:
-            from pipeline.onnx_threads import SizedGraphPool
             from pipeline.sequence.onnx_export import export_frame_encoder
 
             def build(hw: tuple[int, int], images: list, path: Path) -> dict:
                 return export_frame_encoder(enc, hw, path, [torch.from_numpy(im) for im in images])["parity"]
 
-            def run(session, image: np.ndarray, _info: dict) -> np.ndarray:
-                return session.run(None, {"image": image})[0]
-
-            with tempfile.TemporaryDirectory(prefix="siteloc-frames-") as workdir, \
-                    SizedGraphPool("frames", Path(workdir), build, run, samples=samples) as pool:
-                def encode(files: list[Path]) -> dict[str, np.ndarray]:
-                    return {"logits": np.stack(pool(files))}
-
-                def spec() -> EncoderSpec:
-                    return EncoderSpec(graph_encoder, {"graphs": export_graphs(paths, pool), "outputs": ["logits"]})
-
-                logits = encode_in_chunks(paths, partial, chunk, encode, bar, executor=executor, spec=spec,
-                                          ray_address=ray_address)["logits"]
-                if pool.graphs:
-                    graphs = {"workers": pool.workers, "threads_per_worker": pool.threads, "graphs": pool.graphs}
+            arrays, graphs = encode_with_graphs("frames", build, ["logits"], paths, partial, chunk, bar,
+                                                samples=samples, executor=executor, ray_address=ray_address)
+            logits = arrays["logits"]
     finally:
         bar.close()
     return logits.astype(np.float32), graphs

@@ -257,11 +257,7 @@ class RenderPool:
             from pipeline.ray_engine import connect
 
             if ray_address is None:  # a local Ray: the same clear error as the process pool's
-                from pipeline.sitegen.render import RenderError, egl_available
-
-                ok, why = egl_available()
-                if not ok:
-                    raise RenderError(why)
+                _require_egl()
             ray = connect(ray_address, num_cpus=None if ray_address else usable_core_count())
             remote = ray.remote(num_cpus=1, max_restarts=3, max_task_retries=3)(RenderActor)
             args = (preset.model_dump(mode="json"), seed, change, allow_fallback, str(root), tuple(change_areas))
@@ -273,12 +269,7 @@ class RenderPool:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
 
-            from pipeline.sitegen.render import RenderError, egl_available
-
-            ok, why = egl_available()  # here, so that a missing EGL is one clear error, not a broken pool
-            if not ok:
-                raise RenderError(why)
-
+            _require_egl()
             self._pool = ProcessPoolExecutor(
                 self.workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
                 initargs=(preset.model_dump(mode="json"), seed, change, allow_fallback, str(root), tuple(change_areas)))
@@ -325,6 +316,15 @@ class RenderPool:
 
     def __exit__(self, *exc_info: object) -> None:
         self.close()
+
+
+def _require_egl() -> None:
+    """Check EGL here, before workers start, so that a missing EGL is one clear error, not a broken pool."""
+    from pipeline.sitegen.render import RenderError, egl_available
+
+    ok, why = egl_available()
+    if not ok:
+        raise RenderError(why)
 
 
 def _worker_errors(results: Iterator) -> Iterator:
