@@ -8,8 +8,8 @@ Needs the logs ingested first (`siteloc ingest-log` or `make demo`, which writes
 For every log it runs `siteloc localize`'s library function three ways with the `demo` config:
 tracking from the first pose (1 trial), global localization from a uniform start (--global-trials seeds),
 and two teleport kidnappings per replay (--kidnap-trials seeds), once recovering with the filter alone
-(global restart when lost) and once with simulated retrieval candidates injected while lost. Prints the
-machine and a Markdown table (docs/localization-real-logs.md quotes it).
+(global restart when lost) and once with simulated retrieval candidates at every step (the runtime's
+camera path). Prints the machine and a Markdown table (docs/results.md quotes it).
 """
 
 from __future__ import annotations

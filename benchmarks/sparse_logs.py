@@ -10,7 +10,7 @@ reused. For each log: tracking from the true first pose (--tracking-trials seeds
 from a uniform start (--global-trials seeds), with the `demo` config and any --set overrides. Prints the
 machine and a Markdown table: converged (settled under 0.5 m and never lost track), lost track (with
 the steps), median first-convergence step, share of steps within 0.5 m after convergence, median error
-after convergence and over all steps, evo's APE rmse, ms per update. docs/localization-real-logs.md
+after convergence and over all steps, evo's APE rmse, ms per update. docs/results.md
 quotes it.
 """
 

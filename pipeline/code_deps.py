@@ -145,3 +145,25 @@ def main() -> None:  # pragma: no cover - a helper for whoever edits dvc.yaml
 
 if __name__ == "__main__":
     main()
+
+
+def import_cycles() -> list[list[str]]:
+    """Groups of project modules that import each other, directly or through others (every import
+    counts, lazy ones included; package __init__ files do not): each such group is a design debt."""
+    import numpy as np
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    paths = sorted([*ROOT.joinpath("pipeline").rglob("*.py"), *ROOT.joinpath("stages").rglob("*.py")])
+    index = {p: i for i, p in enumerate(paths)}
+    edges = set()
+    for path in paths:
+        for name in _imported_modules(ast.parse(path.read_text()), _package_of(path)):
+            found = _module_file(name)
+            if found is not None and found != path and found.name != "__init__.py":
+                edges.add((index[path], index[found]))
+    rows, cols = (np.array(x, dtype=np.int64) for x in zip(*edges, strict=True)) if edges else ([], [])
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(paths), len(paths)))
+    _, label = connected_components(graph, directed=True, connection="strong")
+    groups = [np.nonzero(label == g)[0] for g in np.unique(label)]
+    return sorted(sorted(paths[i].relative_to(ROOT).as_posix() for i in g) for g in groups if len(g) > 1)

@@ -3,11 +3,11 @@
 Input: a dataset directory as `ingest` or `ingest-log` writes it (map.yaml + runs/<run>.parquet, and
 site.yaml for the laser mount when present). For each run and trial (trial t uses filter seed + t) the
 filter starts as `init` says: `uniform` (global localization), `pose` (at the first ground-truth pose),
-`candidates` (weighted candidate poses, 4:3:2:1, simulated from ground truth and injected again each
-step while the filter is lost), or `retrieval`: the thin runtime of a deployable bundle
-(`Localizer.from_bundle`) with the runs' camera frames: the Top-4 of the first image seed the filter
-and the Top-4 of the current image are injected while it is lost. `kidnap_at` adds kidnappings by
-teleporting (`evaluation.replay.teleport`); runs that already flag kidnappings keep theirs.
+`candidates` (a simulated camera: at every step four ranked poses, the truth with noise among
+free-space decoys, handed to the runtime's camera path, `pipeline.runtime.camera`), or `retrieval`:
+the thin runtime of a deployable bundle (`Localizer.from_bundle`) with the runs' camera frames.
+`kidnap_at` adds kidnappings by teleporting (`evaluation.replay.teleport`); runs that already flag
+kidnappings keep theirs.
 
 Writes `estimates.parquet` (per step), `metrics.json` (per run and trial, and a summary, with evo's APE
 and RPE beside our own figures), the estimates and ground truth as TUM files in `trajectories/` (for
@@ -58,31 +58,36 @@ def _run_paths(data: Path, names: list[str] | None) -> list[Path]:
 
 
 def replay_one(run, lmap, fcfg, mount, init: str, trial: int) -> dict:
-    """Replay `run` once; returns per-step arrays and the final particle set."""
+    """Replay `run` once; returns per-step arrays and the final particle set. With `candidates`, a
+    simulated camera proposes at every step and the runtime's camera path (`CameraPath`) uses it."""
     from pipeline.evaluation.replay import simulated_candidates
-    from pipeline.runtime.amcl import AdaptiveMCL, FilterState
+    from pipeline.runtime.amcl import AdaptiveMCL
+    from pipeline.runtime.camera import CameraPath
     from pipeline.runtime.sensor import Scan
 
     cfg = fcfg.model_copy(update={"seed": fcfg.seed + trial})
     f = AdaptiveMCL(lmap, cfg, range_max=run.range_max, base_from_laser=mount)
     rng = np.random.default_rng(cfg.seed + 7_777)
     n_cand = len(cfg.candidate_weights)
+    camera = None
     if init == "pose":
         f.init_pose(run.gt[0])
     elif init == "candidates":
-        f.init_candidates(simulated_candidates(run.gt[0], lmap, n_cand, rng))
+        # The camera's ranked poses at step t: the truth with noise among free-space decoys, at a random rank.
+        camera = CameraPath(f, cfg, cfg.candidate_weights, range_max=run.range_max, base_from_laser=mount,
+                            rank_image=lambda t: simulated_candidates(run.gt[t], lmap, n_cand, rng))
     else:
         f.init_uniform()
     scans = [Scan(r, run.angle_min, run.angle_increment, run.range_max) for r in run.ranges]
     f.sensor.evaluate(f.particles[:2], scans[0])  # compile the kernels before timing anything
+    if camera is not None:
+        camera.verifier  # noqa: B018 - its range table is built before timing anything
     T = len(run)
     out = {k: [] for k in ("pose", "cov", "state", "particles", "updated", "best", "ms")}
     for t in range(T):
         t0 = time.perf_counter()
-        res = f.update(run.odom[t], scans[t])
+        res = f.update(run.odom[t], scans[t]) if camera is None else camera.step(run.odom[t], scans[t], t).result
         ms = (time.perf_counter() - t0) * 1000.0
-        if init == "candidates" and res.state == FilterState.LOST and t + 1 < T:
-            f.inject(simulated_candidates(run.gt[t + 1], lmap, n_cand, rng))
         out["pose"].append(res.pose)
         out["cov"].append(res.covariance)
         out["state"].append(res.state.value)
@@ -221,7 +226,8 @@ def run_localize(
         summary = _summary(per_run)
         doc = {"init": init, "method": cfg.filter.method, "sensor_model": cfg.filter.sensor.model,
                "candidates": ("simulated from ground truth: the true pose (0.5 m, 10 deg noise) among random "
-                              "free-space decoys, random rank, injected while lost") if init == "candidates" else
+                              "free-space decoys, random rank, every step, through the camera path")
+               if init == "candidates" else
                (f"image retrieval with the bundle {bundle}" if loc is not None else None),
                "trials": trials, "kidnap_at": kidnap_at or [], "summary": summary, "runs": per_run}
         write_text_atomic(tmp / "metrics.json", json.dumps(doc, indent=2) + "\n")

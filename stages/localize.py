@@ -19,12 +19,13 @@ filter.seed + t). The filter starts as --init says:
 
   uniform     global localization: particles over the whole free space
   pose        at the first ground-truth pose (tracking)
-  candidates  weighted candidate poses (4:3:2:1 for four), as image retrieval will give them; here they
-              are simulated from the ground truth (the true pose with 0.5 m / 10 deg noise among random
-              decoys, in random order) and injected again each step while the filter is lost
+  candidates  a simulated camera: at every step four ranked poses, the true pose with 0.5 m / 10 deg
+              noise among random free-space decoys at a random rank, handed to the runtime's camera
+              path as retrieval's would be (seed, inject while not tracking, weigh against a tracked
+              belief; docs/runtime.md)
   retrieval   the deployable bundle given by --bundle (`siteloc export`), as the robot runs it: the
-              first camera frame's Top-4 retrieved poses seed the filter, the current frame's are
-              injected while the filter is lost; the filter settings are the bundle's (filter.yaml)
+              runs' camera frames go through retrieval and the same camera path; the filter settings
+              are the bundle's (filter.yaml)
 
 --kidnap-at 300 --kidnap-at 700 teleports the robot at those steps to a far part of the run while its
 odometry carries on unaware; runs that already flag kidnappings (the reference site's query runs) keep them.

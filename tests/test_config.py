@@ -67,7 +67,7 @@ def test_not_yaml(tmp_path):
 
 
 def test_effective_config_round_trips(tmp_path):
-    cfg = load_config("ci", ["seed=3"])
+    cfg = load_config("ci", ["filter.seed=3"])
     write_effective_config(cfg, tmp_path, stage="ingest", inputs={"site": "x"})
     doc = yaml.safe_load((tmp_path / "config.yaml").read_text())
     assert doc["stage"] == "ingest" and doc["inputs"] == {"site": "x"}
@@ -82,3 +82,35 @@ def test_a_directory_named_like_a_preset_does_not_shadow_it(tmp_path, monkeypatc
     assert resolve_preset("demo") == CONFIG_DIR / "demo.yaml"
     with pytest.raises(ConfigError, match="config file not found"):
         resolve_preset("missing.yaml")
+
+
+def test_every_key_is_described_and_the_reference_page_is_current():
+    from pathlib import Path
+
+    from pipeline.config.keys import keys, markdown
+
+    found = keys()
+    assert len(found) > 200 and [k.key for k in found if not k.description] == []
+    named = {k.key for k in found}
+    assert {"filter.camera.threshold", "retrieval.index_params.ivf_nprobe", "ingest.split.seed"} <= named
+    page = Path(__file__).resolve().parent.parent / "docs" / "configuration.md"
+    assert page.read_text() == markdown(), "stale: run `siteloc config docs --out docs/configuration.md`"
+
+
+def test_explain_prints_a_keys_default_value_and_meaning_and_refuses_an_unknown_one():
+    from typer.testing import CliRunner
+
+    from stages.app import app
+
+    runner = CliRunner()
+    res = runner.invoke(app, ["config", "show", "--config", "ci", "--set", "filter.camera.threshold=7.5",
+                              "--explain", "filter.camera.threshold"])
+    assert res.exit_code == 0, res.output
+    lines = res.output.splitlines()
+    assert lines[0].startswith("filter.camera.threshold  (number; read by the runtime")
+    assert "  default: 6.0" in lines and "  in this config: 7.5" in lines and "replaces the belief" in res.output
+    res = runner.invoke(app, ["config", "show", "--explain", "filter.kld"])
+    assert res.exit_code == 0 and "  filter.kld.bin_xy: 0.5" in res.output.splitlines()
+    res = runner.invoke(app, ["config", "show", "--explain", "filter.camera.treshold"])
+    assert res.exit_code == 1 and "did you mean filter.camera.threshold" in res.output
+    assert "Traceback" not in res.output

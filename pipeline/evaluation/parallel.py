@@ -61,7 +61,7 @@ def prefetch_retrievals(loc, data: Path, runs: list, retrieve, *, threads: int, 
 def _start_worker(root: str, filter_config: dict, retrieval: dict, base_seed: int, cache: dict, data: str,
                   runs: list, threshold_m: float, hold: int) -> None:
     from pipeline.config import FilterConfig
-    from pipeline.evaluation.experiments import CachedRetrieval, PerImageCache
+    from pipeline.evaluation.jobs import CachedRetrieval, PerImageCache
     from pipeline.runtime.localizer import Localizer
 
     loc = Localizer.from_bundle(Path(root), seed=base_seed, describer_threads=1)
@@ -76,7 +76,7 @@ def _start_worker(root: str, filter_config: dict, retrieval: dict, base_seed: in
 
 
 def _replay(job: tuple[str, int, int]):
-    from pipeline.evaluation.experiments import replay_job
+    from pipeline.evaluation.jobs import replay_job
 
     method, i, trial = job
     w = _WORKER

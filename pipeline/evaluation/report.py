@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.config import SitelocConfig, write_effective_config
-from pipeline.evaluation.experiments import METHODS, Replay, check_same_map, query_runs, run_experiments, summarise
+from pipeline.evaluation.experiments import METHODS, check_same_map, query_runs, run_experiments, summarise
+from pipeline.evaluation.jobs import Replay
 from pipeline.evaluation.trajectories import step_stamps, write_tum
 from pipeline.runtime.motion import wrap_angle
 

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.evaluation.experiments import METHODS, Replay
+from pipeline.evaluation.experiments import METHODS
+from pipeline.evaluation.jobs import Replay
 from pipeline.evaluation.plots import map_axes, save_figure
 
 COLOURS = {"proposed": "#264653", "sequence": "#6a4c93", "image_reloc": "#43aa8b",

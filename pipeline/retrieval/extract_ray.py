@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.retrieval.extract import ImageRecord, chunk_done, write_chunk
+from pipeline.retrieval.extract_chunks import ImageRecord, chunk_done, write_chunk
 
 
 class ChunkDescriber:

@@ -14,7 +14,7 @@ Updates are gated by travel (update_min_d, update_min_a) as in nav2: between upd
 accumulates. States: `tracking`, `lost` (the kidnap rule fired), `relocalising` (after a global start or
 an injection, until one cluster holds the weight and is tight). The kidnap rule is the paper's (the best
 particle's likelihood below a threshold) made robust: the per-beam relative likelihood, several updates
-in a row, or w_fast / w_slow collapsing. `inject` is the hook image retrieval calls while lost.
+in a row, or w_fast / w_slow collapsing. `inject` is the hook the camera path calls while not tracking.
 """
 
 from __future__ import annotations
@@ -122,20 +122,16 @@ class AdaptiveMCL:
         self._reset(self.map.sample_regions(cell_region, weights, n or self.max_particles, self.rng),
                     FilterState.RELOCALISING)
 
-    def inject(self, poses, weights=None, n: int | None = None, std_theta=None, share: float | None = None) -> int:
+    def inject(self, poses, weights=None, n: int | None = None, std_theta=None) -> int:
         """Add n particles drawn around candidate poses (the paper: 1000 per step while lost).
 
         The set grows by n up to max_particles; beyond that the lightest old particles make room. New
-        particles get the mean weight, so the next scan decides between them and the old hypotheses;
-        with `share` (0 < share < 1) they hold that share of the belief together instead, a hypothesis
-        the scans must confirm before it can take over.
+        particles get the mean weight, so the next scan decides between them and the old hypotheses.
         """
         n = min(n if n is not None else self.cfg.inject_particles, self.max_particles)
         if n <= 0:
             return 0
-        if share is not None and not 0.0 < share < 1.0:
-            raise ValueError(f"share {share} is not in (0, 1)")
-        return self._add_particles(self._around(poses, weights, n, std_theta), share)
+        return self._add_particles(self._around(poses, weights, n, std_theta))
 
     def inject_regions(self, cell_region: np.ndarray, weights, n: int | None = None) -> int:
         """Add n particles spread over labelled parts of the free space (an area prior), as `inject` does."""
@@ -144,17 +140,13 @@ class AdaptiveMCL:
             return 0
         return self._add_particles(self.map.sample_regions(cell_region, weights, n, self.rng))
 
-    def _add_particles(self, new: np.ndarray, share: float | None = None) -> int:
+    def _add_particles(self, new: np.ndarray) -> int:
         n = len(new)
         room = self.max_particles - n
         if len(self.particles) > room:
             keep = np.argsort(-self.log_w, kind="stable")[:room]
             self.particles, self.log_w, self._fresh = self.particles[keep], self.log_w[keep], self._fresh[keep]
-        if share is None or not len(self.log_w):
-            new_w = logsumexp(self.log_w) - math.log(max(len(self.log_w), 1)) if len(self.log_w) else 0.0
-        else:  # the new particles hold `share` of the belief together, the old ones the rest
-            self.log_w = self.log_w - logsumexp(self.log_w) + math.log1p(-share)
-            new_w = math.log(share / n)
+        new_w = logsumexp(self.log_w) - math.log(max(len(self.log_w), 1)) if len(self.log_w) else 0.0
         self.particles = np.vstack([self.particles, new])
         self.log_w = np.r_[self.log_w, np.full(n, new_w)]
         self._fresh = np.r_[self._fresh, np.zeros(n, dtype=bool)]

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import yaml
 
-from pipeline.evaluation.experiments import CachedRetrieval, Replay, summarise
+from pipeline.evaluation.experiments import summarise
+from pipeline.evaluation.jobs import CachedRetrieval, Replay
 from pipeline.evaluation.report_figures import recovery_curves
 
 

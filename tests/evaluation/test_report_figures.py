@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.evaluation import report_figures
-from pipeline.evaluation.experiments import Replay
+from pipeline.evaluation.jobs import Replay
 
 
 def _replay(run: str, seed: int, steps: int = 60) -> Replay:

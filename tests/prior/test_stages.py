@@ -310,7 +310,7 @@ def test_areas_are_injected_once_when_the_filter_is_declared_lost(prior_dirs, pr
     loc = Localizer.from_bundle(prior_bundle)
     frame = ing / loc.area_prior.prior.rows["image_id"][0]
     states = ["tracking"] * 3 + ["lost", "lost"] + ["relocalising"] * 2 + ["tracking"] * 2 + ["lost"] + ["tracking"]
-    loc.filter, loc.started, loc.seeded_by_retrieval = StubFilter(states), True, True
+    loc.camera.filter, loc.camera.started, loc.camera.seeded_by_camera = StubFilter(states), True, True
     sources = [loc.update(np.zeros(3), None, image=frame).source for _ in states]
     lost = [i + 1 for i, st in enumerate(states) if st == "lost" and (i == 0 or states[i - 1] != "lost")]
     assert [s for s, _ in loc.filter.regions] == lost  # the first update that sees each loss, once

@@ -1,4 +1,4 @@
-"""Retrieved poses checked against the scan (`pipeline.runtime.scancheck`) and the filter's tracking challenge."""
+"""Retrieved poses checked against the scan (`pipeline.runtime.scancheck`)."""
 
 from __future__ import annotations
 
@@ -133,70 +133,6 @@ def test_jitter_spreads_each_pose_by_its_own_heading_std(world):
     rng = np.random.default_rng(9)
     which = rng.choice(3, size=50, p=np.full(3, 1 / 3))
     np.testing.assert_array_equal(a, lmap.jitter(base[:3][which], 0.3, 0.2, rng))
-
-
-def test_the_challenge_does_not_depend_on_the_scan_check_setting():
-    cfg = FilterConfig(scan_check={"pool": 0})  # seed 000's unchecked Top-4, the challenge still on
-    assert cfg.challenge.every == 2 and cfg.challenge.pool == 10
-
-
-def test_a_rival_is_confirmed_only_after_beating_the_estimate_while_the_robot_moves(world):
-    from pipeline.runtime.motion import compose_odometry, odometry_delta
-    from pipeline.runtime.scancheck import Rivals
-
-    lmap, sensor, scanner, stops = world
-    kw = dict(samples=64, std_xy=0.5, std_theta=np.radians(15), min_distance_m=3.0, margin=0.0, confirm=3)
-    truth = np.array([*stops[3, :2], 0.7])
-    far = [p for p in stops if np.hypot(*(p - truth[:2])) > 5.0]
-    wrong = np.array([*far[0], -2.0])  # where the filter believes it is
-    rng = np.random.default_rng(0)
-    rivals = Rivals()
-    odom = np.zeros(3)
-    rivals.move(odom)
-    step = np.array([0.05, 0.0, 0.05])  # a small move in the robot's frame, applied to every pose
-    for k in range(3):
-        scan = scan_at(scanner, truth)
-        retrieved = np.vstack([truth + [0.3, 0.2, 0.1], np.column_stack([far[1:4], np.zeros(3)])])
-        won = rivals.check(sensor, lmap, wrong, retrieved, scan, rng=rng, **kw)
-        if k < 2:
-            assert len(won) == 0 and len(rivals.poses) >= 1 and rivals.hits.max() == k + 1
-            near = np.argmin(np.hypot(*(rivals.poses[:, :2] - truth[:2]).T))
-            assert np.hypot(*(rivals.poses[near, :2] - truth[:2])) < 0.6
-        else:
-            assert len(won) >= 1 and np.min(np.hypot(*(won[:, :2] - truth[:2]).T)) < 0.6
-        # The robot moves: odometry, the truth and the filter's (wrong) belief move alike.
-        new_odom = compose_odometry(odom, *odometry_delta(np.zeros(3), step))
-        before = rivals.poses.copy()
-        rivals.move(new_odom)
-        np.testing.assert_allclose(rivals.poses, compose_odometry(before, *odometry_delta(odom, new_odom)))
-        truth = compose_odometry(truth, *odometry_delta(odom, new_odom))
-        wrong = compose_odometry(wrong, *odometry_delta(odom, new_odom))
-        odom = new_odom
-
-    # A rival that stops fitting better than the estimate is dropped at once.
-    rivals.clear()
-    scan = scan_at(scanner, truth)
-    rivals.check(sensor, lmap, wrong, np.vstack([truth]), scan, rng=rng, **kw)
-    assert len(rivals.poses) == 1
-    # The next scan is the believed place's after all (the first was the odd one): the rival fits worse.
-    rivals.check(sensor, lmap, wrong, np.zeros((0, 3)), scan_at(scanner, wrong), rng=rng, **kw)
-    assert len(rivals.poses) == 0
-
-
-def test_injected_particles_hold_the_share_they_are_given(world):
-    from pipeline.runtime.amcl import AdaptiveMCL
-
-    lmap, _, _, stops = world
-    f = AdaptiveMCL(lmap, FilterConfig(min_particles=100, max_particles=2000), range_max=RANGE_MAX)
-    f.init_pose([*stops[0], 0.0], n=1000)
-    f.log_w = np.log(np.random.default_rng(0).uniform(0.5, 1.5, 1000))  # unequal, as after a scan
-    before = f.weights.copy()
-    f.inject(np.array([[*stops[5], 1.0]]), n=200, share=0.1)
-    w = f.weights
-    assert len(w) == 1200 and w[1000:].sum() == pytest.approx(0.1) and w.sum() == pytest.approx(1.0)
-    np.testing.assert_allclose(w[:1000], 0.9 * before)  # the old belief keeps its shape
-    with pytest.raises(ValueError, match="share"):
-        f.inject(np.array([[*stops[5], 1.0]]), n=10, share=1.0)
 
 
 def test_the_beam_verifier_keeps_the_truth_first_when_people_block_the_laser(world):

@@ -112,9 +112,9 @@ def test_closed_loop_injects_the_sequence_every_step_from_lost_until_tracking(mi
     loc.retrieved = lambda image: np.array([[1.0, 2.0, 0.0], [3.0, 4.0, 0.0], [5.0, 6.0, 0.0], [7.0, 8.0, 0.0]])
     # Lost for two updates (nothing injected yet): the buffer is trimmed once, at the first.
     states = ["tracking"] * 4 + ["lost", "lost"] + ["relocalising"] * 4 + ["tracking"] * 3
-    loc.filter = StubFilter(states)
-    loc.started = True
-    loc.seeded_by_retrieval = True
+    loc.camera.filter = StubFilter(states)
+    loc.camera.started = True
+    loc.camera.seeded_by_camera = True
     sources = [loc.update(np.zeros(3), None, image="frame").source for _ in states]
     lost_at = states.index("lost")  # the result of update 4; update 5 sees it
     # Update 5 keeps the 1 frame the kidnap rule counted plus its own; ready once `length` frames: update 6.
@@ -135,7 +135,7 @@ def test_closed_loop_injects_the_sequence_every_step_from_lost_until_tracking(mi
                                                              "inject_while_relocalising": False})
     loc.reset()
     loc.sequence.encode = encode
-    loc.filter, loc.started, loc.seeded_by_retrieval = StubFilter(states), True, True
+    loc.camera.filter, loc.camera.started, loc.camera.seeded_by_camera = StubFilter(states), True, True
     sources = [loc.update(np.zeros(3), None, image="frame").source for _ in states]
     assert sources[lost_at + 1] == "image" and sources[first:back + 1] == ["sequence"] * (back + 1 - first)
     # ... and injecting the image while re-localizing: every update from lost to tracking, with the sequence
@@ -143,7 +143,7 @@ def test_closed_loop_injects_the_sequence_every_step_from_lost_until_tracking(mi
     loc.filter_config = loc.filter_config.model_copy(update={"inject_while_relocalising": True})
     loc.reset()
     loc.sequence.encode = encode
-    loc.filter, loc.started, loc.seeded_by_retrieval = StubFilter(states), True, True
+    loc.camera.filter, loc.camera.started, loc.camera.seeded_by_camera = StubFilter(states), True, True
     sources = [loc.update(np.zeros(3), None, image="frame").source for _ in states]
     assert sources[lost_at + 1:first] == ["image"] * (first - lost_at - 1)
     assert sources[first:back + 1] == ["sequence+image"] * (back + 1 - first)
@@ -157,7 +157,8 @@ def test_closed_loop_injects_the_sequence_every_step_from_lost_until_tracking(mi
                                                              "sequence_confirm_steps": 2})
     loc.reset()
     loc.sequence.encode = encode
-    loc.filter, loc.started, loc.seeded_by_retrieval = StubFilter(states + ["tracking"] * 3), True, True
+    cam = loc.camera
+    cam.filter, cam.started, cam.seeded_by_camera = StubFilter(states + ["tracking"] * 3), True, True
     sources = [loc.update(np.zeros(3), None, image="frame").source for _ in states + ["tracking"] * 3]
     assert sources[first:back + 3] == ["sequence"] * (back + 3 - first) and sources[back + 3:] == [None] * 3
 
@@ -206,79 +207,101 @@ def test_export_refuses_a_sequence_model_whose_frames_were_encoded_otherwise(mic
     assert "point --sequence at" in err.value.render() and not (tmp_path / "c").exists()
 
 
-def test_a_tracked_twin_is_challenged_by_the_image_and_the_truth_left_alone(micro_sequence_bundle):
-    """filter.challenge: a retrieved pose far from a wrong estimate that keeps fitting the scan better gets
-    particles; with the estimate right, poses that fit worse get none."""
-    from pipeline.evaluation.replay import load_run
-    from pipeline.runtime.localizer import Localizer
-
-    _, ing, _, bundle = micro_sequence_bundle
-    loc = Localizer.from_bundle(bundle)
-    run = load_run(sorted((ing / "runs").glob("query_*.parquet"))[0])
-    t = len(run) // 2
-    truth, scan = run.gt[t], loc.scan(run.ranges[t])
-    fcfg = loc.filter_config
-    assert fcfg.scan_check.pool > 0
-    loc.filter_config = fcfg.model_copy(update={"challenge": fcfg.challenge.model_copy(update={"every": 1})})
-    loc.reset()
-    far = loc.map.sample_free(2000, np.random.default_rng(3))
-    far = far[np.hypot(*(far[:, :2] - truth[:2]).T) > 4.0][:5]
-    loc.retrieved = lambda image: np.vstack([far[1:], truth + [0.2, -0.1, 0.1]])
-    loc.filter.init_pose(far[0])
-    before = len(loc.filter.particles)
-    for _ in range(fcfg.challenge.confirm - 1):  # not before it has won `confirm` checks in a row
-        assert loc._challenge("frame", scan, far[0]) is None and len(loc.filter.particles) == before
-    got = loc._challenge("frame", scan, far[0])
-    assert got is not None
-    assert np.min(np.hypot(*(got[:, :2] - truth[:2]).T)) < 1.0
-    assert len(loc.filter.particles) == min(before + fcfg.challenge.particles * len(got), fcfg.max_particles)
-    np.testing.assert_allclose(loc.filter.weights.sum(), 1.0)
-
-    loc.retrieved = lambda image: far[1:]
-    loc.filter.init_pose(truth)
-    for _ in range(fcfg.challenge.confirm + 1):
-        assert loc._challenge("frame", scan, truth) is None
-    assert len(loc._rivals.poses) == 0
+def _far_poses(loc, truth, n=5):
+    """n free poses more than 4 m from the truth and 3 m from each other: no view is near another's."""
+    far = []
+    for pose in loc.map.sample_free(4000, np.random.default_rng(3)):
+        if np.hypot(*(pose[:2] - truth[:2])) > 4.0 and all(np.hypot(*(pose[:2] - p[:2])) > 3.0 for p in far):
+            far.append(pose)
+    assert len(far) >= n
+    return np.asarray(far[:n])
 
 
-def test_image_evidence_replaces_a_tracked_twin_and_leaves_the_truth_alone(micro_sequence_bundle):
-    """filter.evidence: a far pose the image keeps ranking above the estimate, and that fits the scan,
-    collects log(1 + rank of the estimate) - log(1 + its rank) per check; at the threshold, after
-    min_checks, the belief is replaced by one around it (and the sequence stops waiting to confirm)."""
+def _weigh(loc, estimate, scan):
+    """One weighing of the camera path against a tracked `estimate` (no motion in between)."""
+    from pipeline.runtime.amcl import FilterState
+
+    loc.camera._ranked_for = None
+    return loc.camera._weigh(np.zeros(3), SimpleNamespace(pose=np.asarray(estimate), state=FilterState.TRACKING),
+                             "frame", scan)
+
+
+def test_a_hypothesis_the_scan_and_the_image_prefer_replaces_a_wrong_belief(micro_sequence_bundle):
+    """filter.camera: a far pose the image ranks above the estimate and the scan fits better collects
+    log(1 + rank of the estimate) - log(1 + its rank), plus laser_nats when the laser tells the two
+    apart, per check; at the threshold, after min_checks, the belief is replaced by one around it (and
+    the sequence stops waiting to confirm). With the estimate right, poses that fit worse are dropped."""
     from pipeline.evaluation.replay import load_run
     from pipeline.runtime.amcl import FilterState
     from pipeline.runtime.localizer import Localizer
 
     _, ing, _, bundle = micro_sequence_bundle
     loc = Localizer.from_bundle(bundle)
-    ev = loc.filter_config.evidence
-    assert ev.every >= 1 and ev.max_rank is not None
+    cam = loc.filter_config.camera
+    assert cam.every >= 1 and cam.max_rank is not None
     run = load_run(sorted((ing / "runs").glob("query_*.parquet"))[0])
     t = len(run) // 2
     truth, scan = run.gt[t], loc.scan(run.ranges[t])
-    far = []  # five free poses 4 m from the truth and 3 m from each other: no view is near another's
-    for pose in loc.map.sample_free(4000, np.random.default_rng(3)):
-        if np.hypot(*(pose[:2] - truth[:2])) > 4.0 and all(np.hypot(*(pose[:2] - p[:2])) > 3.0 for p in far):
-            far.append(pose)
-    far = np.asarray(far[:5])
-    assert len(far) == 5
+    far = _far_poses(loc, truth)
     loc.retrieved = lambda image: np.vstack([truth + [0.2, -0.1, 0.1], far[1:]])
     loc.filter.init_pose(far[0])
-    loc.awaiting_sequence = True
-    # far[0] has no view among the five retrieved: rank 5 (under max_rank), the truth's rank 0.
-    per_check = np.log(6.0)
-    need = max(ev.min_checks, int(np.ceil(ev.threshold / per_check)))
+    loc.camera.awaiting_sequence = True
+    # far[0] has no view among the five ranked: rank 5 (under max_rank), the truth's rank 0; the scan fits
+    # the truth, not far[0], so the laser adds laser_nats at each check.
+    verifier, how = loc.verifier, loc.camera.weighing
+    beams = verifier.beams(scan)[0].size
+    ll = [check_candidates_once(verifier, loc.map, p, scan, how) for p in (truth, far[0])]
+    assert (ll[0] - ll[1]) / beams > cam.distinct
+    per_check = np.log(6.0) + cam.laser_nats
+    need = max(cam.min_checks, int(np.ceil(cam.threshold / per_check)))
     for k in range(1, need):
-        assert loc._weigh_evidence("frame", scan, far[0], ev.threshold) is None
-        assert loc._evidence.evidence.max() == pytest.approx(k * per_check)
-    got = loc._weigh_evidence("frame", scan, far[0], ev.threshold)
-    assert got is not None and got.shape == (1, 4) and np.hypot(*(got[0, :2] - truth[:2])) < 0.6
-    assert loc.filter.state == FilterState.TRACKING and not loc.awaiting_sequence
+        assert _weigh(loc, far[0], scan) is None
+        assert loc.camera.hypotheses.evidence.max() == pytest.approx(k * per_check)
+    got = _weigh(loc, far[0], scan)
+    assert got is not None and np.hypot(*(got[:2] - truth[:2])) < 0.6
+    assert loc.filter.state == FilterState.TRACKING and not loc.camera.awaiting_sequence
     assert np.hypot(*(loc.filter.estimate.pose[:2] - truth[:2])) < 0.6
 
-    # The estimate right: retrieved poses that do not fit the scan are never followed.
+    # The estimate right: ranked poses that do not fit the scan are never followed.
     loc.retrieved = lambda image: far[1:]
     loc.filter.init_pose(truth)
     for _ in range(need + 2):
-        assert loc._weigh_evidence("frame", scan, truth, ev.threshold) is None
-    assert len(loc._evidence.poses) == 0
+        assert _weigh(loc, truth, scan) is None
+    assert len(loc.camera.hypotheses.poses) == 0
+
+
+def check_candidates_once(verifier, lmap, pose, scan, how):
+    """A pose's best refined fit, as the weighing scores it."""
+    from pipeline.runtime.scancheck import check_candidates
+
+    got = check_candidates(verifier, lmap, np.asarray(pose)[None], scan, keep=1, samples=how.samples,
+                           std_xy=how.std_xy, std_theta=how.std_theta, rng=np.random.default_rng(0), rounds=how.rounds)
+    return float(got.log_likelihood[0])
+
+
+def test_a_settled_belief_needs_the_settled_threshold(micro_sequence_bundle):
+    """After settled_updates tracked updates without a jump, a hypothesis needs settled_threshold."""
+    from pipeline.evaluation.replay import load_run
+    from pipeline.runtime.localizer import Localizer
+
+    _, ing, _, bundle = micro_sequence_bundle
+    loc = Localizer.from_bundle(bundle)
+    fc = loc.filter_config
+    cam = fc.camera.model_copy(update={"min_checks": 1})
+    loc.filter_config = fc.model_copy(update={"camera": cam})
+    loc.reset()
+    run = load_run(sorted((ing / "runs").glob("query_*.parquet"))[0])
+    t = len(run) // 2
+    truth, scan = run.gt[t], loc.scan(run.ranges[t])
+    far = _far_poses(loc, truth)
+    loc.retrieved = lambda image: np.vstack([truth + [0.2, -0.1, 0.1], far[1:]])
+    loc.filter.init_pose(far[0])
+    for _ in range(cam.settled_updates + 1):  # tracked without a jump: settled
+        loc.camera.hypotheses.follow(np.zeros(3), far[0], tracking=True, jump_m=cam.min_distance_m)
+    assert loc.camera.hypotheses.age == cam.settled_updates
+    per_check = np.log(6.0) + cam.laser_nats
+    need = max(cam.min_checks, int(np.ceil(cam.settled_threshold / per_check)))
+    assert need > max(cam.min_checks, int(np.ceil(cam.threshold / per_check)))
+    for _ in range(1, need):
+        assert _weigh(loc, far[0], scan) is None
+    assert _weigh(loc, far[0], scan) is not None

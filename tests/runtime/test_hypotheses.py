@@ -1,4 +1,4 @@
-"""The camera's evidence between hypotheses the laser cannot tell apart (`pipeline.runtime.evidence`)."""
+"""Camera hypotheses weighed against the tracked estimate (`pipeline.runtime.hypotheses`)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 
 from pipeline.config import FilterConfig
 from pipeline.io.map_yaml import OccupancyMap
-from pipeline.runtime.evidence import ImageEvidence, rank_near
 from pipeline.runtime.grid import LaserMap
+from pipeline.runtime.hypotheses import Hypotheses, Weighing, rank_near
 from pipeline.runtime.motion import compose_odometry, odometry_delta
 from pipeline.runtime.sensor import Scan, make_sensor_model
 from pipeline.sitegen.laser import LaserScanner
@@ -43,8 +43,10 @@ def scan_at(scanner, pose) -> Scan:
     return Scan(ranges, scanner.angle_min, scanner.angle_increment, RANGE_MAX)
 
 
-KW = dict(pool=5, samples=128, std_xy=0.5, std_theta=np.radians(15), min_distance_m=3.0, tolerance=0.1, min_fit=0.5,
-          radius_m=1.0, heading_rad=np.radians(45), rounds=4)
+def how(**over) -> Weighing:
+    kw = dict(pool=5, samples=128, rounds=4, std_xy=0.5, std_theta=np.radians(15), min_distance_m=3.0, distinct=0.1,
+              laser_nats=3.0, min_fit=0.5, radius_m=1.0, heading_rad=np.radians(45), max_rank=None, min_checks=1)
+    return Weighing(**{**kw, **over})
 
 
 def test_rank_near_matches_a_loop_over_the_ranked_list():
@@ -79,7 +81,7 @@ def test_a_twin_is_replaced_once_the_image_has_preferred_the_truth_long_enough(t
     truth = np.array([1.2, 2.6, 0.4])
     believed = truth + [SHIFT, 0.0, 0.0]  # the filter tracks the twin
     decoys = np.array([[3.0, 1.0, 2.0], [7.9, 1.0, -2.0], [2.0, 4.2, 1.0], [8.0, 4.2, 0.0]])
-    ev = ImageEvidence()
+    ev = Hypotheses()
     odom = np.zeros(3)
     step = np.array([0.15, 0.0, 0.05])
     gain = np.log(6.0)
@@ -87,8 +89,8 @@ def test_a_twin_is_replaced_once_the_image_has_preferred_the_truth_long_enough(t
     for k in range(1, 5):
         ev.follow(odom, believed, tracking=True, jump_m=3.0)
         retrieved = np.vstack([truth + [0.2, -0.15, 0.1], decoys, believed + [0.1, 0.1, -0.05]])
-        won = ev.check(sensor, lmap, believed, retrieved, scan_at(scanner, truth), threshold=threshold, min_checks=2,
-                       max_rank=None, rng=np.random.default_rng(k), **KW)
+        won = ev.check(sensor, lmap, believed, retrieved, scan_at(scanner, truth), how(min_checks=2),
+                       threshold=threshold, rng=np.random.default_rng(k))
         if k < 3:
             assert won is None
             i = int(np.argmin(np.hypot(*(ev.poses[:, :2] - truth[:2]).T)))
@@ -117,16 +119,16 @@ def test_the_truth_is_left_alone_when_the_image_prefers_it(twin_rooms):
     twin = truth + [SHIFT, 0.0, 0.0]
     scan = scan_at(scanner, truth)
     filler = np.array([[3.0, 1.0, 2.0], [7.9, 1.0, -2.0], [2.0, 4.2, 1.0], [8.0, 4.2, 0.0]])
-    ev = ImageEvidence()
+    ev = Hypotheses()
     for k in range(4):
-        won = ev.check(sensor, lmap, truth, np.vstack([truth, filler, twin]), scan, threshold=3.0, min_checks=1,
-                       rng=np.random.default_rng(k), **KW)
+        won = ev.check(sensor, lmap, truth, np.vstack([truth, filler, twin]), scan, how(), threshold=3.0,
+                       rng=np.random.default_rng(k))
         assert won is None and len(ev.poses) == 0
-    ev.check(sensor, lmap, truth, np.vstack([twin, truth, filler]), scan, threshold=3.0, min_checks=1,
-             rng=np.random.default_rng(9), **KW)
+    ev.check(sensor, lmap, truth, np.vstack([twin, truth, filler]), scan, how(), threshold=3.0,
+             rng=np.random.default_rng(9))
     assert len(ev.poses) == 1 and ev.evidence[0] == pytest.approx(np.log(2.0))
-    ev.check(sensor, lmap, truth, np.vstack([truth, filler, twin]), scan, threshold=3.0, min_checks=1,
-             rng=np.random.default_rng(10), **KW)
+    ev.check(sensor, lmap, truth, np.vstack([truth, filler, twin]), scan, how(), threshold=3.0,
+             rng=np.random.default_rng(10))
     assert len(ev.poses) == 0
 
 
@@ -136,14 +138,40 @@ def test_a_view_missed_by_retrieval_counts_as_max_rank(twin_rooms):
     believed = truth + [SHIFT, 0.0, 0.0]
     retrieved = np.vstack([truth, [[3.0, 1.0, 2.0]] * 9])  # the believed place's views are not among ten
     for max_rank, want in ((None, np.log1p(10)), (4, np.log1p(4))):
-        ev = ImageEvidence()
-        ev.check(sensor, lmap, believed, retrieved, scan_at(scanner, truth), threshold=100.0, min_checks=1,
-                 max_rank=max_rank, rng=np.random.default_rng(0), **KW)
+        ev = Hypotheses()
+        ev.check(sensor, lmap, believed, retrieved, scan_at(scanner, truth), how(max_rank=max_rank),
+                 threshold=100.0, rng=np.random.default_rng(0))
         assert len(ev.poses) == 1 and ev.evidence[0] == pytest.approx(want)
 
 
+def test_a_pose_the_laser_prefers_adds_laser_nats_and_one_it_rules_out_is_dropped(twin_rooms):
+    """The estimate in the other room, off the scan: the truth fits better by more than `distinct` per
+    beam and gains laser_nats beside the camera's ratio at each check; the same pose as the estimate,
+    with the scan taken at the wrong place, fits worse and is not followed."""
+    lmap, sensor, scanner = twin_rooms
+    truth = np.array([1.2, 2.6, 0.4])
+    believed = np.array([3.6 + SHIFT, 2.4, -1.2])  # the other room, another corner: the scan does not fit it
+    scan = scan_at(scanner, truth)
+    ll = sensor.evaluate(np.vstack([truth, believed]), scan).log_likelihood
+    assert (ll[0] - ll[1]) / sensor.beams(scan)[0].size > 0.1
+    ranked = np.vstack([truth, [[3.0, 1.0, 2.0]] * 4])  # the believed place's views are not among five
+    for laser_nats in (0.0, 3.0):
+        ev = Hypotheses()
+        for k in (1, 2):
+            ev.check(sensor, lmap, believed, ranked, scan, how(laser_nats=laser_nats), threshold=100.0,
+                     rng=np.random.default_rng(k))
+            assert len(ev.poses) == 1 and np.hypot(*(ev.poses[0, :2] - truth[:2])) < 0.3
+            assert ev.evidence[0] == pytest.approx(k * (np.log1p(5) + laser_nats))
+    # Roles swapped: the scan taken at `believed`, the estimate at the truth's twin fitting it: the truth
+    # fits worse by far and is dropped whatever the camera says.
+    ev = Hypotheses()
+    ev.check(sensor, lmap, believed, ranked, scan_at(scanner, believed), how(), threshold=100.0,
+             rng=np.random.default_rng(0))
+    assert len(ev.poses) == 0
+
+
 def test_the_belief_ages_while_tracked_without_a_jump():
-    ev = ImageEvidence()
+    ev = Hypotheses()
     odom, pose = np.zeros(3), np.array([1.0, 1.0, 0.3])
     step = np.array([0.2, 0.0, 0.1])
     ages = []

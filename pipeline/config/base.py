@@ -1,0 +1,9 @@
+"""The base of every config section: unknown keys refused, values frozen, defaults validated."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
