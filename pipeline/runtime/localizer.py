@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from pydantic import ValidationError
 
 from pipeline.retrieval.search import weighted_candidates
 from pipeline.runtime.bundle import BundleError, open_bundle
@@ -51,7 +52,14 @@ class Localizer:
         from pipeline.runtime.grid import LaserMap
 
         self.root, self.manifest, self.settings = root, manifest, settings
-        fcfg = FilterConfig.model_validate(settings["filter"])
+        try:
+            fcfg = FilterConfig.model_validate(settings["filter"])
+        except ValidationError as err:  # an older or hand-edited bundle: name the file, the key and the fix
+            from pipeline.config import format_validation_error
+
+            raise BundleError(format_validation_error(f"{root / 'filter.yaml'}, section filter", err, FilterConfig)
+                              + "\n  fix: export the bundle again with this version of siteloc "
+                              "(`siteloc config show --explain filter` lists the settings)") from None
         if seed is not None:
             fcfg = fcfg.model_copy(update={"seed": seed})
         las = settings["laser"]

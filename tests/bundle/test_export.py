@@ -221,3 +221,21 @@ def test_the_scan_checks_verifier_follows_the_config(exported):
     assert beam.evaluate(cands[:, :3], scan).log_likelihood.max() >= beam.evaluate(retrieved, scan).log_likelihood.max()
     e = loc.update(run.odom[0], run.ranges[0], image=image)
     assert e.source == "image" and np.all(np.isfinite(e.pose))
+
+
+def test_a_bundle_with_settings_this_runtime_does_not_know_is_refused_naming_file_key_and_fix(exported):
+    """An older bundle's filter.yaml (filter.challenge, replaced by filter.camera) is a BundleError that
+    names the file, the key, the known keys and the fix, not a raw validation error."""
+    import yaml
+
+    from pipeline.runtime.bundle import BundleError
+    from pipeline.runtime.localizer import Localizer
+
+    bundle = exported[4]
+    settings = yaml.safe_load((bundle / "filter.yaml").read_text())
+    old = {**settings, "filter": {**settings["filter"], "challenge": {"every": 2}}}
+    with pytest.raises(BundleError) as err:
+        Localizer(bundle, {}, old)
+    text = str(err.value)
+    assert str(bundle / "filter.yaml") in text and "key 'challenge': unknown key" in text and "camera" in text
+    assert "export the bundle again" in text
