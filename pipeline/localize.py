@@ -57,9 +57,10 @@ def _run_paths(data: Path, names: list[str] | None) -> list[Path]:
     return found
 
 
-def replay_one(run, lmap, fcfg, mount, init: str, trial: int) -> dict:
+def replay_one(run, lmap, fcfg, mount, init: str, trial: int, candidate_weights=None) -> dict:
     """Replay `run` once; returns per-step arrays and the final particle set. With `candidates`, a
-    simulated camera proposes at every step and the runtime's camera path (`CameraPath`) uses it."""
+    simulated camera proposes len(candidate_weights) ranked poses at every step and the runtime's camera
+    path (`CameraPath`) uses them as retrieval's, weighted `candidate_weights` (retrieval.candidate_weights)."""
     from pipeline.evaluation.replay import simulated_candidates
     from pipeline.runtime.amcl import AdaptiveMCL
     from pipeline.runtime.camera import CameraPath
@@ -68,13 +69,15 @@ def replay_one(run, lmap, fcfg, mount, init: str, trial: int) -> dict:
     cfg = fcfg.model_copy(update={"seed": fcfg.seed + trial})
     f = AdaptiveMCL(lmap, cfg, range_max=run.range_max, base_from_laser=mount)
     rng = np.random.default_rng(cfg.seed + 7_777)
-    n_cand = len(cfg.candidate_weights)
+    if init == "candidates" and not candidate_weights:
+        raise ValueError("init 'candidates' needs candidate_weights (retrieval.candidate_weights)")
+    n_cand = len(candidate_weights or ())
     camera = None
     if init == "pose":
         f.init_pose(run.gt[0])
     elif init == "candidates":
         # The camera's ranked poses at step t: the truth with noise among free-space decoys, at a random rank.
-        camera = CameraPath(f, cfg, cfg.candidate_weights, range_max=run.range_max, base_from_laser=mount,
+        camera = CameraPath(f, cfg, candidate_weights, range_max=run.range_max, base_from_laser=mount,
                             rank_image=lambda t: simulated_candidates(run.gt[t], lmap, n_cand, rng))
     else:
         f.init_uniform()
@@ -189,7 +192,8 @@ def run_localize(
             if kidnap_at:
                 run = teleport(run, kidnap_at, kidnap_min_jump_m, seed=cfg.filter.seed + 1000 * trial)
             rep = (replay_bundle(run, loc, data, trial) if loc is not None
-                   else replay_one(run, lmap, cfg.filter, mount, init, trial))
+                   else replay_one(run, lmap, cfg.filter, mount, init, trial,
+                                     candidate_weights=cfg.retrieval.candidate_weights))
             pose = rep["pose"]
             kid = np.nonzero(run.kidnapped)[0].tolist()
             stamps = step_stamps(run.t, len(run))

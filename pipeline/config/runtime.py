@@ -37,9 +37,8 @@ class SensorModelConfig(Strict):
                             "whose endpoint lies near an obstacle for fewer than beam_skip_threshold of the "
                             "particles (people and moved chairs in front of the laser), unless that would skip "
                             "beam_skip_error_threshold of them; the kidnap rule does not follow the skipping (but see "
-                            "unmapped_margin_m). Paper site: "
-                            "118 of 120 kidnappings within 15 steps and under 10 cm with it, 112 without (people "
-                            "drag a tracked pose along a corridor); office 194 of 200 with it, 197 without")
+                            "unmapped_margin_m). Without it, people walking along a corridor drag a tracked pose "
+                            "with them")
     beam_skip_spread_m: float | None = Field(0.5, gt=0, description="skip only while the filter tracks and the "
                                              "particles' position std is under this (one settled belief): with "
                                              "several hypotheses, the beams that only a minority agrees with are the "
@@ -89,7 +88,7 @@ class KidnapConfig(Strict):
     trust_updates: int = Field(10, ge=0, description="updates the filter must have tracked (since it converged; "
                                "from init_pose at once) before beams ending short of its map are taken for unmapped "
                                "obstacles (sensor.unmapped_margin_m): a fresh lock on a wrong place must still see "
-                               "them. Intel at 1 m, global: 18 steps to converge with 0, 8 with 10")
+                               "them")
     max_through_share: float = Field(0.3, gt=0, le=1, description="... or when more than this share of the beams "
                                      "pass the settled belief's walls (sensor.unmapped_margin_m beyond them, or no "
                                      "return where one lies in range): what a kidnapped robot sees, and an unmapped "
@@ -113,15 +112,14 @@ class ScanCheckConfig(Strict):
     """Retrieved poses checked against the current scan before particles are seeded or injected there."""
 
     pool: int = Field(10, ge=0, description="check this many retrieved poses (the image's re-ranked Top-N, the "
-                      "sequence's Top-N) against the scan and seed or inject at the len(candidate_weights) that fit "
-                      "it best; 0: retrieval's own Top-4, unchecked (seed 000). Office: 10 and 50 beat 0 and 20")
+                      "sequence's Top-N) against the scan and seed or inject at the len(retrieval.candidate_weights) "
+                      "that fit it best; 0: retrieval's own Top-4, unchecked (seed 000)")
     samples: int = Field(64, ge=1, description="poses drawn around each checked one (init_std_xy; the source's "
                          "heading spread); the best-fitting one is where particles go")
     rounds: int = Field(3, ge=1, description="refinement rounds: each draws `samples` poses around every "
                         "candidate's best so far at half the spread (the scan's likelihood peaks within cm; one "
                         "round of 0.5 m draws finds the peak along corridors, not at the right junction). "
-                        "1: one round of draws (the check before refinement); 3 took the p90 error of global "
-                        "localization from 4.7 / 3.3 m to 0.10 / 0.07 m (office / paper site)")
+                        "1: one round of draws, no refinement")
     rank_prior: float = Field(1.0, ge=0.0, description="order the checked poses by scan log-likelihood minus "
                               "rank_prior * log(1 + retrieval rank) (a Zipf prior of retrieval's precision at "
                               "rank): where a twin fits the scan as well as the right place, the image's order "
@@ -132,9 +130,7 @@ class ScanCheckConfig(Strict):
                                              "cells x table_angles x 2 B, built once per map and cached on disk), "
                                              "which explains a person in front of the laser as a short reading "
                                              "where the likelihood field scores a miss, and penalises a scan that "
-                                             "sees through a wall. Office, 200 kidnappings within 15 steps and "
-                                             "under 10 cm (no beam skipping): 190 with the filter's likelihood "
-                                             "field, 197 with beam")
+                                             "sees through a wall")
 
 
 class CameraConfig(Strict):
@@ -182,8 +178,8 @@ class FilterConfig(Strict):
     max_particles: int = Field(5000, ge=10, description="KLD-sampling's upper bound (mcl: the fixed count)")
     max_particles_per_ha: float | None = Field(
         4500.0, gt=0, description="... raised to this many per hectare of the map's free space where that is more "
-        "(a search over a large site needs them; indoor floors of under 1.1 ha keep max_particles). Campus, "
-        "4.5 ha free, global from uniform: 6 of 10 seeds converged with 5000, 9 with 20000. null: max_particles")
+        "(a global search over a large site needs them; indoor floors of under 1.1 ha keep max_particles). "
+        "null: max_particles")
     alpha_slow: float = Field(0.001, ge=0, le=1, description="augmented MCL: decay of the slow likelihood average")
     alpha_fast: float = Field(0.1, ge=0, le=1, description="... of the fast one; random particles come in while it "
                               "falls below the slow one")
@@ -198,15 +194,11 @@ class FilterConfig(Strict):
     update_min_a_deg: float = Field(20.0, ge=0, description="... or this much turn, degrees")
     init_std_xy: float = Field(0.5, gt=0, description="spread around a pose or candidate, m")
     init_std_theta_deg: float = Field(15.0, gt=0, description="spread around a pose or candidate, degrees")
-    candidate_weights: tuple[float, ...] = Field((4.0, 3.0, 2.0, 1.0), min_length=1, description="weights of "
-                                                 "candidate poses given to the filter without weights (laser-log "
-                                                 "replays); the bundle's come from retrieval.candidate_weights")
     inject_particles: int = Field(1000, ge=0, description="particles injected around candidates per step when lost")
     inject_while_relocalising: bool = Field(
         True, description="keep injecting the image's candidates at every update with an image until the filter "
         "tracks again (with a sequence model: for as long as the sequence's are injected, both checked together), "
-        "not only at the update it declares itself lost; with scan_check, office recovered 88 of 100 kidnappings "
-        "within 15 steps against 78 (unchecked it was worse: wrong candidates pull the filter away)")
+        "not only at the update it declares itself lost")
     seed_with: Literal["candidates", "area_prior"] = Field(
         "candidates", description="how the first camera image starts the filter: around its Top-4 retrieved "
         "poses (seed 000), or over the free space of its most probable (room, area) classes (seed 001's prior; "
@@ -224,11 +216,10 @@ class FilterConfig(Strict):
     sequence_heading_std_deg: float | None = Field(
         180.0, gt=0, description="heading spread of particles injected around sequence candidates, degrees (null: "
         "init_std_theta_deg). A window's pose is the mapping run's at its last frame, whose heading need not be "
-        "the robot's: 180 (headings nearly uniform, the laser picks) recovered faster than 15 or 60 on office")
+        "the robot's: at 180 the headings are nearly uniform and the laser picks")
     sequence_confirm_steps: int = Field(
         6, ge=0, description="keep injecting sequence candidates for this many steps after the filter tracks "
-        "again: on a quasi-symmetric floor a wrong twin of the place can fit the laser and be tracked; on office "
-        "6 steps raised the kidnappings recovered within 15 steps from 16 to 27 of 40 (0 stops at once)")
+        "again: on a quasi-symmetric floor a wrong twin of the place can fit the laser and be tracked")
     mixture_share: float = Field(0.1, ge=0, le=1, description="mixture MCL: share drawn from the dual proposal")
     scan_check: ScanCheckConfig = ScanCheckConfig()
     camera: CameraConfig = CameraConfig()

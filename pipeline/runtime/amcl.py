@@ -112,8 +112,9 @@ class AdaptiveMCL:
         self._tracked = self.cfg.kidnap.trust_updates  # a pose the caller knows is trusted from the start
 
     def init_candidates(self, poses, weights=None, n: int | None = None, std_theta=None) -> None:
-        """Weighted candidate poses (image retrieval's Top-K; 4:3:2:1 by default), each with a Gaussian spread
-        (`std_theta`: radians, one or one per pose; default init_std_theta_deg)."""
+        """Weighted candidate poses (image retrieval's Top-K, weighted 4:3:2:1 by the camera path; equal weights
+        when none are given), each with a Gaussian spread (`std_theta`: radians, one or one per pose; default
+        init_std_theta_deg)."""
         self._reset(self._around(poses, weights, n or self.max_particles, std_theta), FilterState.RELOCALISING)
 
     def init_regions(self, cell_region: np.ndarray, weights, n: int | None = None) -> None:
@@ -158,11 +159,7 @@ class AdaptiveMCL:
 
     def _around(self, poses, weights, n: int, std_theta=None) -> np.ndarray:
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-        if weights is None:
-            w = np.asarray(self.cfg.candidate_weights[: len(poses)], dtype=np.float64)
-            w = np.pad(w, (0, len(poses) - len(w)), constant_values=w[-1] if len(w) else 1.0)
-        else:
-            w = np.asarray(weights, dtype=np.float64)
+        w = np.ones(len(poses)) if weights is None else np.asarray(weights, dtype=np.float64)
         if len(w) != len(poses) or not np.all(np.isfinite(w)) or w.sum() <= 0 or np.any(w < 0):
             raise ValueError(f"candidate weights {w.tolist()} do not fit {len(poses)} candidate poses")
         std_theta = math.radians(self.cfg.init_std_theta_deg) if std_theta is None else std_theta

@@ -87,7 +87,7 @@ def test_candidates_seed_and_injection_recover(world):
     run, ranges = runs["mapping_00"], scans["mapping_00"]
     f = make(occ)
     wrong = [run.gt[0] + [3.0, 1.0, 1.0], run.gt[0] + [-4.0, 0.5, 2.0], run.gt[0] + [6.0, 0.0, 0.0]]
-    f.init_candidates([wrong[0], run.gt[0], wrong[1], wrong[2]])  # the true pose second: weight 3 of 10
+    f.init_candidates([wrong[0], run.gt[0], wrong[1], wrong[2]], [4, 3, 2, 1])  # the truth second: 3 of 10
     errors, _, _ = replay(f, run, ranges, scanner, stop=6)
     assert np.all(errors[2:] < 0.3)
 

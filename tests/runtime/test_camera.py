@@ -44,7 +44,7 @@ def kidnapped_replay(floor, cfg: FilterConfig, steps: int = 14):
         return np.vstack([decoys[:1], truth + rng.normal(0, [0.3, 0.3, 0.1]), decoys[1:]])
 
     f = AdaptiveMCL(lmap, cfg, range_max=RANGE_MAX)
-    camera = CameraPath(f, cfg, cfg.candidate_weights, rank_image=rank, range_max=RANGE_MAX)
+    camera = CameraPath(f, cfg, (4.0, 3.0, 2.0, 1.0), rank_image=rank, range_max=RANGE_MAX)
     f.init_pose(start)
     camera.started = camera.seeded_by_camera = True
     errors, sources = [], []
