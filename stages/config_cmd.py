@@ -38,11 +38,8 @@ def show(
         cfg = load(config, set_)
         if explain is not None:
             from pipeline.config.keys import explain as explain_key
-            from pipeline.config.keys import value_at
 
-            text = explain_key(explain)  # an unknown key is refused before its value is looked up
-            typer.echo(explain_key(explain, value_at(cfg, explain)) if "section" not in text.split("\n")[0]
-                       else text)
+            typer.echo(explain_key(explain, cfg))
             return
         if out is None:
             typer.echo(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False), nl=False)

@@ -109,6 +109,9 @@ def test_explain_prints_a_keys_default_value_and_meaning_and_refuses_an_unknown_
     lines = res.output.splitlines()
     assert lines[0].startswith("filter.camera.threshold  (number; read by the runtime")
     assert "  default: 6.0" in lines and "  in this config: 7.5" in lines and "replaces the belief" in res.output
+    res = runner.invoke(app, ["config", "show", "--set", "filter.camera.settled_updates=null",
+                              "--explain", "filter.camera.settled_updates"])
+    assert res.exit_code == 0 and "  in this config: null" in res.output.splitlines()  # a null value is a value
     res = runner.invoke(app, ["config", "show", "--explain", "filter.kld"])
     assert res.exit_code == 0 and "  filter.kld.bin_xy: 0.5" in res.output.splitlines()
     res = runner.invoke(app, ["config", "show", "--explain", "filter.camera.treshold"])

@@ -91,8 +91,8 @@ def _value(v) -> str:
     return str(v)
 
 
-def explain(dotted: str, current=None) -> str:
-    """A key's (or a section's) type, default, current value and description, as plain text."""
+def explain(dotted: str, cfg: BaseModel | None = None) -> str:
+    """A key's (or a section's) type, default, value in `cfg` (when given) and description, as plain text."""
     found = {k.key: k for k in keys()}
     if dotted not in found:
         close = difflib.get_close_matches(dotted, list(found), n=3, cutoff=0.6)
@@ -108,14 +108,14 @@ def explain(dotted: str, current=None) -> str:
                   if c.key.startswith(dotted + ".") and c.key.count(".") == dotted.count(".") + 1]
         return "\n".join(lines)
     lines.append(f"  default: {_value(k.default)}")
-    if current is not None:
-        lines.append(f"  in this config: {_value(current)}")
+    if cfg is not None:
+        lines.append(f"  in this config: {_value(_value_at(cfg, dotted))}")
     if k.description:
         lines.append(f"  {k.description}")
     return "\n".join(lines)
 
 
-def value_at(cfg: BaseModel, dotted: str):
+def _value_at(cfg: BaseModel, dotted: str):
     node = cfg
     for part in dotted.split("."):
         node = getattr(node, part)
