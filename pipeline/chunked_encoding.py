@@ -7,6 +7,11 @@ when its file exists, an interrupted run resumes from the finished chunks, and a
 worker is simply computed again. `plan.json` holds a fingerprint of the inputs and settings: the partial
 folder of another run is refused rather than mixed in.
 
+Resuming trusts nothing on disk (`start_partial`, `checked_chunk`, shared with `extract`'s Parquet chunks):
+each finished chunk is read in full and checked against what it should hold (its row count, its arrays'
+names and shapes); a damaged one is deleted with a warning naming it and computed again, and a folder without
+a readable plan.json is started afresh. `--force` always starts clean: the partial folder is deleted first.
+
 Locally the stage's own encoder (its thread pool of ONNX sessions, or torch) runs each chunk. On Ray each
 actor builds the encoder from an `EncoderSpec` (a module-level factory and its keyword arguments, so it
 pickles by reference) once, then encodes chunk after chunk. The arrays are the same either way: the ONNX
@@ -17,15 +22,20 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Callable, Sequence
+import logging
+import shutil
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
-from pipeline.errors import SitelocError
+from pipeline.errors import SitelocError, excerpt
 
 Encode = Callable[[list[Path]], dict[str, np.ndarray]]  # image files -> {name: (len(files), ...) array}
+T = TypeVar("T")
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -39,21 +49,67 @@ class EncoderSpec:
         return self.factory(**self.kwargs)
 
 
-def open_partial(partial: Path, settings: dict, paths: Sequence[Path]) -> None:
+def open_partial(partial: Path, settings: dict, paths: Sequence[Path], *, force: bool = False) -> None:
     """Create `partial` for a run of these settings and images, or keep the one an interrupted identical run
-    left; refuse the partial folder of another run."""
-    from pipeline.io.atomic import write_text_atomic
-
+    left; refuse the partial folder of another run. `force` deletes whatever is there first."""
     h = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
     for p in paths:
         h.update(str(p).encode() + b"\0")
-    fingerprint = h.hexdigest()
-    plan = Path(partial) / "plan.json"
-    if plan.is_file() and json.loads(plan.read_text()).get("fingerprint") != fingerprint:
-        raise SitelocError(f"{partial}: an interrupted run with other images or settings is there; delete it (or "
-                           f"rerun that command) to start afresh")
-    Path(partial).mkdir(parents=True, exist_ok=True)
-    write_text_atomic(plan, json.dumps({"fingerprint": fingerprint, "images": len(paths)}) + "\n")
+    start_partial(partial, h.hexdigest(), len(paths), force=force)
+
+
+def start_partial(partial: Path, fingerprint: str, images: int, *, force: bool = False,
+                  inputs: Iterable[Path | str | None] = (), other: str = "an interrupted run with other images or "
+                  "settings") -> None:
+    """Make `partial` the resume folder of the run `fingerprint` names and write its plan.json.
+
+    Kept when an interrupted identical run left it; deleted first with `force`, or (with a warning) when it is
+    not a folder or has no readable plan.json; refused (SitelocError, `other` saying whose it is) when its plan
+    is another run's. `inputs`: a partial folder that overlaps one of them is refused, never deleted.
+    """
+    from pipeline.io.atomic import refuse_overlap, write_text_atomic
+
+    partial = Path(partial)
+    plan = partial / "plan.json"
+    if partial.exists() or partial.is_symlink():
+        refuse_overlap(partial, inputs)
+        damaged = None
+        if not force:
+            try:
+                found = json.loads(plan.read_text(encoding="utf-8"))["fingerprint"]
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                damaged = f"no readable plan.json ({excerpt(exc, 80)})"
+            else:
+                if found != fingerprint:
+                    raise SitelocError(f"{partial}: {other} is there; delete it, rerun with --force, or rerun that "
+                                       f"command to start afresh")
+        if force or damaged:
+            if damaged and not (partial.is_dir() and not any(partial.iterdir())):
+                log.warning("warning: %s: resume folder discarded, %s; starting afresh", partial, damaged)
+            remove_entry(partial)
+    partial.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(plan, json.dumps({"fingerprint": fingerprint, "images": images}) + "\n")
+
+
+def checked_chunk(files: Sequence[Path], check: Callable[[], T]) -> T | None:
+    """What `check()` returns (it reads a finished chunk's `files` in full and raises if they do not hold what
+    they should), or None after deleting the files with a warning: a damaged chunk is computed again rather
+    than failing every rerun."""
+    try:
+        return check()
+    except Exception as exc:  # any failure to read or match means the chunk cannot be trusted
+        log.warning("warning: %s: damaged resume chunk (%s); it is computed again", files[0], excerpt(exc, 120))
+        for f in files:
+            remove_entry(Path(f))
+        return None
+
+
+def remove_entry(path: Path) -> None:
+    """Delete a file, link or folder (whatever a damaged resume folder holds there)."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    else:
+        path.unlink(missing_ok=True)
 
 
 def chunk_path(partial: Path, k: int) -> Path:
@@ -72,6 +128,39 @@ def read_chunk(partial: Path, k: int) -> dict[str, np.ndarray]:
         return {name: z[name] for name in z.files}
 
 
+def _layout(arrays: dict[str, np.ndarray]) -> dict[str, tuple]:
+    """Each array's row shape and dtype: what every chunk of one run shares."""
+    return {name: (a.shape[1:], a.dtype.str) for name, a in sorted(arrays.items())}
+
+
+def _checked_npz(partial: Path, k: int, n: int, layout: dict[str, tuple] | None) -> dict[str, np.ndarray]:
+    """Chunk k read in full; ValueError unless every array has `n` rows (and, given one, `layout`)."""
+    arrays = read_chunk(partial, k)
+    rows = {name: (len(a) if a.ndim else 0) for name, a in arrays.items()}
+    if not arrays or set(rows.values()) != {n}:
+        raise ValueError(f"rows per array {rows}, the chunk has {n} images")
+    if layout is not None and _layout(arrays) != layout:
+        raise ValueError(f"arrays {_layout(arrays)}, the other chunks hold {layout}")
+    return arrays
+
+
+def _finished_chunks(partial: Path, chunks: list[list[Path]]) -> dict[int, dict[str, np.ndarray]]:
+    """The chunks already in `partial`, read and checked (rows = the chunk's images; the same arrays, row shapes
+    and dtypes as the other chunks); damaged ones are deleted (`checked_chunk`)."""
+    from functools import partial as bind
+
+    done: dict[int, dict[str, np.ndarray]] = {}
+    layout: dict[str, tuple] | None = None
+    for k, c in enumerate(chunks):
+        path = chunk_path(partial, k)
+        if path.exists() or path.is_symlink():
+            arrays = checked_chunk([path], bind(_checked_npz, partial, k, len(c), layout))
+            if arrays is not None:
+                done[k] = arrays
+                layout = layout or _layout(arrays)
+    return done
+
+
 def encode_in_chunks(paths: Sequence[Path], partial: Path, chunk: int, encode: Encode | None, bar, *,
                      executor: str = "local", spec: Callable[[], EncoderSpec] | None = None,
                      ray_address: str | None = None) -> dict[str, np.ndarray]:
@@ -80,7 +169,8 @@ def encode_in_chunks(paths: Sequence[Path], partial: Path, chunk: int, encode: E
     opened (`open_partial`); `bar` advances by images."""
     paths = [Path(p) for p in paths]
     chunks = [paths[i:i + chunk] for i in range(0, len(paths), chunk)]
-    pending = [k for k in range(len(chunks)) if not chunk_path(partial, k).is_file()]
+    done = _finished_chunks(partial, chunks)
+    pending = [k for k in range(len(chunks)) if k not in done]
     todo = set(pending)
     bar.update(sum(len(c) for k, c in enumerate(chunks) if k not in todo))
     if executor == "local":
@@ -96,7 +186,7 @@ def encode_in_chunks(paths: Sequence[Path], partial: Path, chunk: int, encode: E
                        ChunkEncoder, {"partial": str(partial), "spec": built}, on_done=lambda _k, n: bar.update(n))
     else:
         raise ValueError(f"executor must be local or ray, got '{executor}'")
-    parts = [read_chunk(partial, k) for k in range(len(chunks))]
+    parts = [done[k] if k in done else read_chunk(partial, k) for k in range(len(chunks))]
     if not parts:
         return {}
     return {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
@@ -104,9 +194,7 @@ def encode_in_chunks(paths: Sequence[Path], partial: Path, chunk: int, encode: E
 
 def close_partial(partial: Path) -> None:
     """Remove the partial folder once the stage's output is in place."""
-    for p in Path(partial).iterdir():
-        p.unlink()
-    Path(partial).rmdir()
+    remove_entry(Path(partial))
 
 
 class ChunkEncoder:
@@ -126,12 +214,12 @@ class ChunkEncoder:
 def export_graphs(paths: Sequence[Path], pool) -> dict[str, tuple[str, dict]]:
     """Export and check (through the stage's `SizedGraphPool`) a graph for every image size among `paths`;
     "<W>x<H>" -> (graph file, info)."""
-    from PIL import Image
+    from pipeline.io.images import image_size
 
     first: dict[tuple[int, int], Path] = {}
     for p in paths:
-        with Image.open(p) as im:
-            first.setdefault((im.height, im.width), Path(p))
+        w, h = image_size(p)
+        first.setdefault((h, w), Path(p))
     pool(list(first.values()))
     return {key: (str(path), info) for key, (path, info) in pool.graph_files().items()}
 

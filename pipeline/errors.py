@@ -78,6 +78,34 @@ class InputError(SitelocError):
         return "\n".join(lines)
 
 
+class OutputOverlapsInputError(SitelocError):
+    """An output that would replace, sit inside or contain one of the command's inputs."""
+
+
+class RuntimeInputError(SitelocError, ValueError):
+    """A value handed to the runtime's public API (a scan, odometry, an image, a pose) that it cannot use."""
+
+
+def excerpt(value: object, limit: int = 60) -> str:
+    """A short, printable quotation of bad input: control bytes escaped, at most `limit` characters.
+
+    Messages quote what the user gave so they can find it; a 10 MB line or a terminal escape sequence from a
+    log must not reach the terminal whole.
+    """
+    text = value.decode("utf-8", "backslashreplace") if isinstance(value, bytes | bytearray) else str(value)
+    out = []
+    for ch in text[: limit + 1]:
+        code = ord(ch)
+        if ch in "\t\n\r" or code < 0x20 or 0x7F <= code < 0xA0:
+            out.append(ch.encode("unicode_escape").decode("ascii"))
+        else:
+            out.append(ch)
+    quoted = "".join(out)
+    if len(text) > limit or len(quoted) > limit:
+        quoted = quoted[:limit] + f"... ({len(text)} characters)"
+    return quoted
+
+
 class OutputExistsError(SitelocError):
     def __init__(self, path: Path):
         super().__init__(

@@ -19,7 +19,7 @@ import numpy as np
 from pipeline.config import IngestConfig, SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem, Problems
 from pipeline.io import tables
-from pipeline.io.atomic import atomic_dir, write_text_atomic
+from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
 from pipeline.io.capture_runs import CaptureRun, read_run
 from pipeline.io.captures import (
     CaptureRow,
@@ -79,7 +79,7 @@ def validate_site_dir(root: Path, cfg: IngestConfig, *, progress: bool = True) -
 
     boxes: list[Box] = []
     coco_path = root / "annotations.json"
-    if coco_path.is_file():
+    if coco_path.is_file() and rows:  # without captures there is nothing to check the annotations against
         boxes = read_coco_boxes(coco_path, site, image_info, {r.image for r in rows}, cfg.min_box_side_px, problems)
     else:
         problems.warn(coco_path, "no annotations.json: the detector cannot be trained on this site")
@@ -247,10 +247,11 @@ def run_ingest(
     """Validate `inputs['site']` and write `outputs['out']`: images/boxes/runs tables, map, site, report."""
     from pipeline.progress import progress_bar
 
+    out = Path(outputs["out"])
+    check_output(out, force=force, inputs=inputs.values())
     v = validate_site_dir(inputs["site"], cfg.ingest, progress=progress)
     split = split_stops([r.stop_id for r in v.rows], cfg.ingest.split.test_fraction, cfg.ingest.split.seed)
-    out = Path(outputs["out"])
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         to_copy = sorted({r.image for r in v.rows} | {i for run in v.runs for i in run.image if i})
         for rel in progress_bar(to_copy, desc="linking images", unit="img", enabled=progress, leave=False):
             _link_or_copy(v.root / rel, tmp / rel, cfg.ingest.link_images)

@@ -20,10 +20,22 @@ from pipeline.io.carmen import CarmenLog, read_carmen
 from pipeline.io.map_yaml import OccupancyMap, write_map
 from pipeline.io.odometry import noise_json, relative_to_first, synthesise_odometry
 from pipeline.io.tables import to_table, write_table
-from pipeline.mapping.occupancy import build_occupancy_map, endpoint_occupied_share
+from pipeline.mapping.occupancy import (
+    MAX_MAP_CELLS,
+    MapTooLargeError,
+    build_occupancy_map,
+    endpoint_occupied_share,
+    max_side_m,
+    valid_returns,
+)
 from pipeline.mapping.preview import write_preview
 
 STAGE = "ingest-log"
+#: A log with fewer usable returns than this share of its readings is refused: its map would be (nearly)
+#: all unknown. The real logs have 96-99 %; a log of NaN or no-return codes only has 0.
+MIN_VALID_SHARE = 0.01
+#: Far poses listed one by one when a map is too large.
+MAX_FAR_LISTED = 10
 
 
 def run_name(log_path: Path) -> str:
@@ -167,6 +179,61 @@ def report_markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def check_returns(log_path: Path, log: CarmenLog, max_range_m: float) -> None:
+    """Refuse a log whose readings are (almost) all invalid: it would map to an all-unknown grid."""
+    valid = int(valid_returns(log.ranges, log.range_max, max_range_m).sum())
+    total = int(log.ranges.size)
+    if valid >= MIN_VALID_SHARE * total and valid > 0:
+        return
+    reach = min(log.range_max, max_range_m)
+    raise InputError(
+        f"{log_path}: " + ("no valid ranges found" if valid == 0 else "too few valid ranges")
+        + f", {valid} of {total} readings ({valid / total:.1%}); a map needs at least {MIN_VALID_SHARE:.0%}",
+        [
+            Problem(
+                str(log_path),
+                f"a valid range is a finite reading between 0 and {reach:g} m; NaN, inf, 0, the no-return codes "
+                f"and readings >= ingest_log.laser.range_max ({log.range_max:g} m) are not",
+                fix="check the log's range fields (a corrupt export or a laser that saw nothing), or raise "
+                "ingest_log.mapping.max_range_m / ingest_log.laser.range_max if its returns are longer",
+            )
+        ],
+    )
+
+
+def too_large_error(log_path: Path, log: CarmenLog, exc: MapTooLargeError, max_range_m: float) -> InputError:
+    """The InputError for a map over MAX_MAP_CELLS, naming the lines of the poses far from the trajectory."""
+    xy = log.poses[:, :2]
+    centre = np.median(xy, axis=0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        dist = np.hypot(*(xy - centre).T)
+    side = max_side_m(exc.resolution)
+    # Far: outside the largest map around the median and 10x further out than the typical pose (not a big site).
+    far = np.nonzero(~(dist <= max(side / 2, 10 * float(np.median(dist)))))[0]
+    far = far[np.argsort(-np.nan_to_num(dist[far], nan=np.inf), kind="stable")]
+    summary = f"{log_path}: {exc}"
+    if len(far) == 0:
+        span = np.ptp(xy, axis=0)
+        return InputError(summary, [Problem(
+            str(log_path),
+            f"the trajectory spans {span[0]:.0f} x {span[1]:.0f} m and the beams reach up to "
+            f"{min(log.range_max, max_range_m):g} m beyond it",
+            fix="map at a coarser resolution (--set ingest_log.mapping.resolution=0.1), lower "
+            "ingest_log.mapping.max_range_m, or split the log into parts of one building each",
+        )])
+    if len(far) > MAX_FAR_LISTED:
+        summary += f"; {len(far)} poses lie far from the rest, the first {MAX_FAR_LISTED} listed"
+    fix = (f"correct or delete this line: a pose that far from the rest of the trajectory is corrupt (a map spans "
+           f"at most {MAX_MAP_CELLS:,} cells, {side:.4g} x {side:.4g} m at {exc.resolution:g} m)")
+    return InputError(summary, [
+        Problem(str(log_path),
+                f"pose ({log.poses[i, 0]:.6g}, {log.poses[i, 1]:.6g}) lies {dist[i]:.3g} m from the median "
+                f"position of the trajectory ({centre[0]:.2f}, {centre[1]:.2f})",
+                row=int(log.line_numbers[i]), fix=fix)
+        for i in far[:MAX_FAR_LISTED]
+    ])
+
+
 def run_ingest_log(
     cfg: SitelocConfig,
     *,
@@ -179,8 +246,9 @@ def run_ingest_log(
     """Ingest `inputs["log"]` into `outputs["out"]`; returns the output directory.
 
     Writes runs/<run>.parquet, map.yaml + map.pgm, preview.png, report.json + report.md, config.yaml.
-    `progress` shows a tqdm bar while mapping. Raises `InputError` for a missing or malformed log and
-    `OutputExistsError` if `out` exists without `force`; `out` is untouched on any failure.
+    `progress` shows a tqdm bar while mapping. Raises `InputError` for a missing or malformed log, one with
+    (almost) no valid ranges, or one whose map would exceed MAX_MAP_CELLS (naming the lines of far poses),
+    and `OutputExistsError` if `out` exists without `force`; `out` is untouched on any failure.
     """
     log_path, out = Path(inputs["log"]), Path(outputs["out"])
     if not log_path.is_file():
@@ -196,8 +264,19 @@ def run_ingest_log(
         )
     section = cfg.ingest_log
     run = run_name(log_path)
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=[log_path]) as tmp:
         full = read_carmen(log_path, section.laser, skip_bad_lines=skip_bad_lines)
+        check_returns(log_path, full, section.mapping.max_range_m)
+        geometry = (full.angle_min, full.angle_increment, full.range_max)
+        # The map a mapping team would have: from every scan, however sparsely the runs table keeps them.
+        try:
+            occ_map = build_occupancy_map(full.poses, full.ranges, *geometry, section.mapping, progress=progress)
+        except MapTooLargeError as exc:
+            raise too_large_error(log_path, full, exc, section.mapping.max_range_m) from None
+        if not occ_map.occupied.any():
+            raise InputError(f"{log_path}: no valid ranges found: the map has no occupied cell", [Problem(
+                str(log_path), "every return was cleared again by other beams (the map would be free and unknown "
+                "cells only)", fix="check the log's poses and ranges; a map needs walls to localize against")])
         log = subsample(full, every_metre(full.poses, section.scan_every_m))
         odom = synthesise_odometry(log.poses, section.odometry_noise, section.seed)
         (tmp / "runs").mkdir()
@@ -213,9 +292,6 @@ def run_ingest_log(
                 "time_source": log.time_source,
             },
         )
-        geometry = (log.angle_min, log.angle_increment, log.range_max)
-        # The map a mapping team would have: from every scan, however sparsely the runs table keeps them.
-        occ_map = build_occupancy_map(full.poses, full.ranges, *geometry, section.mapping, progress=progress)
         write_map(tmp / "map.yaml", occ_map)
         shares = tuple(
             endpoint_occupied_share(

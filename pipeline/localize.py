@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.config import SitelocConfig, write_effective_config
-from pipeline.errors import InputError, Problem
+from pipeline.errors import InputError, Problem, RuntimeInputError
 from pipeline.io import tables
-from pipeline.io.atomic import atomic_dir, write_text_atomic
+from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
 from pipeline.io.map_yaml import read_map
 
 INITS = ("uniform", "pose", "candidates", "retrieval")
@@ -57,11 +57,17 @@ def _run_paths(data: Path, names: list[str] | None) -> list[Path]:
     return found
 
 
+def _at_step(run, t: int, err: RuntimeInputError, what: str = "") -> RuntimeInputError:
+    """The runtime's refusal of a run's input, naming the run and the step."""
+    return RuntimeInputError(f"run {run.name}, step {t} of {len(run)}{what}: {err}")
+
+
 def replay_one(run, lmap, fcfg, mount, init: str, trial: int, candidate_weights=None) -> dict:
     """Replay `run` once; returns per-step arrays and the final particle set. With `candidates`, a
     simulated camera proposes len(candidate_weights) ranked poses at every step and the runtime's camera
     path (`CameraPath`) uses them as retrieval's, weighted `candidate_weights` (retrieval.candidate_weights)."""
     from pipeline.evaluation.replay import simulated_candidates
+    from pipeline.runtime import inputs
     from pipeline.runtime.amcl import AdaptiveMCL
     from pipeline.runtime.camera import CameraPath
     from pipeline.runtime.sensor import Scan
@@ -74,7 +80,10 @@ def replay_one(run, lmap, fcfg, mount, init: str, trial: int, candidate_weights=
     n_cand = len(candidate_weights or ())
     camera = None
     if init == "pose":
-        f.init_pose(run.gt[0])
+        try:
+            f.init_pose(run.gt[0])
+        except RuntimeInputError as err:
+            raise _at_step(run, 0, err, " (its ground-truth pose, --init pose)") from None
     elif init == "candidates":
         # The camera's ranked poses at step t: the truth with noise among free-space decoys, at a random rank.
         camera = CameraPath(f, cfg, candidate_weights, range_max=run.range_max, base_from_laser=mount,
@@ -87,7 +96,13 @@ def replay_one(run, lmap, fcfg, mount, init: str, trial: int, candidate_weights=
         camera.verifier  # noqa: B018 - its range table is built before timing anything
     T = len(run)
     out = {k: [] for k in ("pose", "cov", "state", "particles", "updated", "best", "ms")}
+    odom = None
     for t in range(T):
+        try:  # what the bundle's Localizer checks (its update); the run's own laser sets the beam count
+            odom = inputs.odometry(run.odom[t], odom)
+            inputs.ranges(run.ranges[t], len(run.ranges[0]), run.angle_increment)
+        except RuntimeInputError as err:
+            raise _at_step(run, t, err) from None
         t0 = time.perf_counter()
         res = f.update(run.odom[t], scans[t]) if camera is None else camera.step(run.odom[t], scans[t], t).result
         ms = (time.perf_counter() - t0) * 1000.0
@@ -114,7 +129,10 @@ def replay_bundle(run, loc, data: Path, trial: int) -> dict:
     for t in range(len(run)):
         image = data / run.image_ids[t] if run.image_ids[t] else None
         t0 = time.perf_counter()
-        e = loc.update(run.odom[t], run.ranges[t], image=image)
+        try:
+            e = loc.update(run.odom[t], run.ranges[t], image=image)
+        except RuntimeInputError as err:
+            raise _at_step(run, t, err) from None
         out["ms"].append((time.perf_counter() - t0) * 1000.0)
         if seeded is None and e.candidates is not None:
             seeded = e.candidates
@@ -169,6 +187,7 @@ def run_localize(
 
         raise ConfigError("--init retrieval and --bundle go together: the bundle's detector and database "
                           "turn the runs' camera frames into candidate poses")
+    check_output(Path(outputs["out"]), force=force, inputs=[*inputs.values(), bundle])
     loc = None
     if bundle is not None:
         from pipeline.runtime.localizer import Localizer
@@ -186,7 +205,7 @@ def run_localize(
                                                                     fix="use --init uniform without --kidnap-at")])
     rows: dict[str, list] = {f.name: [] for f in tables.ESTIMATES}
     per_run: dict[str, list[dict]] = {}
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=[*inputs.values(), bundle]) as tmp:
         jobs = [(r, t) for r in loaded for t in range(trials)]
         for run, trial in progress_bar(jobs, desc="replaying", unit="replay", enabled=progress):
             if kidnap_at:

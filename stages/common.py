@@ -99,7 +99,16 @@ class Group(TyperGroup):
 
 
 def err(message: str) -> None:
-    typer.secho(message, fg=typer.colors.RED, err=True)
+    typer.secho(printable(message), fg=typer.colors.RED, err=True)
+
+
+def printable(message: str, line_limit: int = 1000) -> str:
+    """`message` safe for a terminal: control bytes (an escape sequence read from a file) shown escaped, and
+    each line cut at `line_limit` characters. Messages quote input through `excerpt`; this is the backstop."""
+    from pipeline.errors import excerpt
+
+    return "\n".join(excerpt(line, line_limit) if len(line) > line_limit or not line.isprintable() else line
+                     for line in message.split("\n"))
 
 
 @contextlib.contextmanager

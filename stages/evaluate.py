@@ -76,14 +76,7 @@ def evaluate(
 
 def _site_of(bundle: Path) -> str:
     """The site a bundle is of (its manifest's `site`), only to name the default output; verified later."""
-    import json
-    import tarfile
+    from pipeline.runtime.bundle import peek_site
 
-    try:
-        if bundle.is_dir():
-            return str(json.loads((bundle / "manifest.json").read_text())["site"])
-        with tarfile.open(bundle, "r:gz") as tar:
-            member = next(m for m in tar.getmembers() if m.name.endswith("/manifest.json") and m.name.count("/") == 1)
-            return str(json.loads(tar.extractfile(member).read())["site"])
-    except (OSError, KeyError, StopIteration, ValueError, tarfile.TarError):
-        return bundle.name.removesuffix(".tar.gz")  # the run itself reports what is wrong with the bundle
+    # the run itself reports what is wrong with the bundle
+    return peek_site(bundle) or bundle.name.removesuffix(".tar.gz").removesuffix(".tgz")

@@ -76,7 +76,8 @@ def export(
         inputs = {**({"parent": parent} if parent else {}),
                   "model": model, "index": index, "data": data, **({"sequence": sequence} if sequence else {}),
                   **({"prior": prior} if prior else {})}
-        bundle = run_export(cfg, inputs=inputs, outputs={"out": out}, force=force)
+        bundle = run_export(cfg, inputs=inputs, outputs={"out": out}, force=force,
+                            on_note=lambda note: typer.echo(f"note: {note}", err=True))
         manifest = json.loads((bundle / "manifest.json").read_text())
         parity = json.loads((bundle / "models" / "describer.json").read_text())["parity"]["max_differences"]
         size = sum(e["size"] for e in manifest["files"].values())

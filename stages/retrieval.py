@@ -171,6 +171,7 @@ def query(
         from pipeline.detection.inference import load_detector, load_image
         from pipeline.errors import InputError, Problem
         from pipeline.io.atomic import write_text_atomic
+        from pipeline.io.images import ImageError, open_image
         from pipeline.retrieval.database import load_database, query_database
         from pipeline.retrieval.extract import describe
 
@@ -178,6 +179,14 @@ def query(
         bad = [p for p in images if not p.is_file()]
         if bad:
             raise InputError("images not found", [Problem(str(p), "no such file") for p in bad])
+        unreadable = []
+        for path in images:  # decoded once before the index and the detector load: every bad image named at once
+            try:
+                open_image(path)
+            except ImageError as exc:
+                unreadable.extend(exc.problems)
+        if unreadable:
+            raise InputError("images that cannot be read; nothing was queried", unreadable)
         from pipeline.retrieval.backbones import check_backbone, load_backbone, recorded_backbone
 
         rdb = load_database(index, index=r.index, params=r.index_params)

@@ -89,6 +89,88 @@ def test_another_runs_partial_folder_is_refused(files, tmp_path):
         open_partial(partial, {"stage": "t", "chunk": 5}, files[:-1])
 
 
+class Warnings:
+    """Collects the resume warnings, whether or not pytest's logging plugin is on."""
+
+    def __init__(self):
+        import logging
+
+        self.records, self.logger = [], logging.getLogger("pipeline.chunked_encoding")
+        self.handler = logging.Handler(logging.WARNING)
+        self.handler.emit = self.records.append
+
+    def __enter__(self):
+        self.logger.addHandler(self.handler)
+        return self
+
+    def __exit__(self, *exc):
+        self.logger.removeHandler(self.handler)
+
+    @property
+    def text(self) -> str:
+        return "\n".join(r.getMessage() for r in self.records)
+
+
+def _damage(path: Path, how: str) -> None:
+    if how == "truncated":
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    elif how == "garbage":
+        path.write_bytes(b"\x1b[2J not a zip file " * 100)
+    elif how == "wrong rows":
+        np.savez(path, sum=np.zeros(2), profile=np.zeros((2, 3), np.float32))
+    elif how == "wrong layout":
+        np.savez(path, sum=np.zeros(5), profile=np.zeros((5, 4), np.float32))
+    elif how == "a folder":
+        path.unlink()
+        path.mkdir()
+        (path / "x").write_text("x")
+
+
+@pytest.mark.parametrize("how", ["truncated", "garbage", "wrong rows", "wrong layout", "a folder"])
+def test_a_damaged_chunk_is_discarded_with_a_warning_and_computed_again(files, tmp_path, how):
+    """A corrupted chunk in the resume folder made every rerun fail; now it is named, deleted and redone."""
+    partial = tmp_path / "out.partial"
+    open_partial(partial, {"stage": "t"}, files)
+    encode_in_chunks(files, partial, 5, byte_stats(), Bar())
+    _damage(chunk_path(partial, 2), how)
+    open_partial(partial, {"stage": "t"}, files)
+    calls = []
+    with Warnings() as warned:
+        got = encode_in_chunks(files, partial, 5, lambda p: (calls.append(len(p)), byte_stats()(p))[1], Bar())
+    assert calls == [5]  # only the damaged chunk
+    assert f"{chunk_path(partial, 2)}: damaged resume chunk" in warned.text and "computed again" in warned.text
+    assert "\x1b" not in warned.text
+    want = byte_stats()(files)
+    np.testing.assert_array_equal(got["sum"], want["sum"])
+    np.testing.assert_array_equal(got["profile"], want["profile"])
+
+
+@pytest.mark.parametrize("plan", [b"{not json", b'["a list"]', b"\xff\xfe garbage", None])
+def test_an_unreadable_plan_starts_afresh_and_force_always_does(files, tmp_path, plan):
+    partial = tmp_path / "out.partial"
+    open_partial(partial, {"stage": "t"}, files)
+    encode_in_chunks(files, partial, 5, byte_stats(), Bar())
+    if plan is None:
+        (partial / "plan.json").unlink()
+    else:
+        (partial / "plan.json").write_bytes(plan)
+    with Warnings() as warned:
+        open_partial(partial, {"stage": "t"}, files)
+    assert f"{partial}: resume folder discarded, no readable plan.json" in warned.text
+    assert sorted(p.name for p in partial.iterdir()) == ["plan.json"]
+    # --force: whatever is there (garbage chunks, another run's plan, a stray folder) is deleted first.
+    encode_in_chunks(files, partial, 5, byte_stats(), Bar())
+    for k in range(5):
+        chunk_path(partial, k).write_bytes(b"garbage")
+    (partial / "stray").mkdir()
+    open_partial(partial, {"stage": "t", "chunk": 6}, files, force=True)
+    assert sorted(p.name for p in partial.iterdir()) == ["plan.json"]
+    close_partial(partial)
+    partial.write_bytes(b"a file where the folder goes")
+    open_partial(partial, {"stage": "t"}, files, force=True)
+    assert partial.is_dir()
+
+
 def test_a_chunk_file_never_holds_pickles(files, tmp_path):
     partial = tmp_path / "p"
     open_partial(partial, {}, files)

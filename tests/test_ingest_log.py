@@ -174,3 +174,74 @@ def test_intel_map_explains_its_scans(tmp_path):
     assert report["endpoint_on_occupied_share_tol1"] >= 0.93
     occ = read_map(out / "map.yaml")
     assert 0.01 < occ.occupied.mean() < 0.05 and occ.free.mean() > 0.25
+
+
+def _flaser_fields(line: str, **fields) -> str:
+    """A FLASER line with ranges (`ranges=`) or the pose x (`x=`) replaced."""
+    tokens = line.split()
+    n = int(tokens[1])
+    if "ranges" in fields:
+        tokens[2 : 2 + n] = [fields["ranges"]] * n
+    if "x" in fields:
+        tokens[2 + n] = fields["x"]
+    return " ".join(tokens)
+
+
+@pytest.mark.parametrize(("value", "words"), [("nan", "no valid ranges found, 0 of 1810"),
+                                               ("81.83", "no valid ranges found, 0 of 1810"),
+                                               ("0", "no valid ranges found, 0 of 1810")])
+def test_a_log_without_valid_ranges_is_refused(tmp_path, value, words):
+    """An all-NaN (or all no-return) log used to exit 0 with an all-unknown map."""
+    lines = [_flaser_fields(ln, ranges=value) if ln.startswith("FLASER") else ln
+             for ln in room_log_lines(n_scans=10, n_beams=181)]
+    log, out = write_log(tmp_path / "nan.log", lines), tmp_path / "out"
+    before = log.read_bytes()
+    result = _invoke(str(log), "--out", str(out))
+    assert result.exit_code == 1 and "Traceback" not in result.output and "unexpected" not in result.output
+    assert str(log) in result.output and words in result.output and "at least 1%" in result.output
+    assert "max_range_m" in result.output
+    assert not out.exists() and not list(tmp_path.glob(".out.tmp-*")) and log.read_bytes() == before
+
+
+def test_the_valid_range_floor_is_one_percent(tmp_path):
+    """10 valid readings of 1810 (0.55 %) are refused as too few; one whole valid scan of ten (10 %) maps."""
+    lines = room_log_lines(n_scans=10, n_beams=181)
+    flaser = [i for i, ln in enumerate(lines) if ln.startswith("FLASER")]
+    sparse = list(lines)
+    for i in flaser:  # keep the first beam of each scan
+        tokens = sparse[i].split()
+        tokens[3 : 2 + 181] = ["nan"] * 180
+        sparse[i] = " ".join(tokens)
+    result = _invoke(str(write_log(tmp_path / "sparse.log", sparse)), "--out", str(tmp_path / "a"))
+    assert result.exit_code == 1 and "too few valid ranges, 10 of 1810 readings (0.6%)" in result.output
+    one = [_flaser_fields(ln, ranges="nan") if i in flaser[1:] else ln for i, ln in enumerate(lines)]
+    result = _invoke(str(write_log(tmp_path / "one.log", one)), "--out", str(tmp_path / "b"))
+    assert result.exit_code == 0, result.output
+
+
+@pytest.mark.parametrize("far", ["1e7", "-3e12", "1e300"])
+def test_a_far_pose_names_its_line_instead_of_a_memory_error(tmp_path, far):
+    """One pose at x = 1e7 asked for a 60 GiB grid (MemoryError); now the line is named before allocating."""
+    lines = room_log_lines(n_scans=10, n_beams=181)
+    k = [i for i, ln in enumerate(lines) if ln.startswith("FLASER")][6]
+    lines[k] = _flaser_fields(lines[k], x=far)
+    log, out = write_log(tmp_path / "far.log", lines), tmp_path / "out"
+    result = _invoke(str(log), "--out", str(out))
+    assert result.exit_code == 1 and "Traceback" not in result.output and "unexpected" not in result.output
+    assert "50,000,000 cells allowed" in result.output and f"line {k + 1}: pose ({float(far):.6g}" in result.output
+    assert "correct or delete this line" in result.output and result.output.count("\n  - ") == 1
+    assert not out.exists() and not list(tmp_path.glob(".out.tmp-*"))
+
+
+def test_an_output_that_is_the_log_is_refused(tmp_path, room_log):
+    before = room_log.read_bytes()
+    result = _invoke(str(room_log), "--out", str(room_log), "--force")
+    assert result.exit_code == 1 and "is the input" in result.output and room_log.read_bytes() == before
+
+
+def test_a_map_too_large_for_its_resolution_names_the_setting(tmp_path, room_log):
+    """No pose is an outlier: the fix is a coarser resolution (here 0.2 mm cells: 1.2e9 of them), not a line."""
+    result = runner.invoke(app, ["ingest-log", str(room_log), "--out", str(tmp_path / "out"), "--config", "ci",
+                                 "--set", "ingest_log.mapping.resolution=0.0002"])
+    assert result.exit_code == 1 and "50,000,000 cells allowed" in result.output and "line " not in result.output
+    assert "the trajectory spans 4 x 2 m" in result.output and "ingest_log.mapping.resolution" in result.output

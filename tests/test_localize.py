@@ -65,6 +65,7 @@ def test_bad_options_fail_clearly(dataset, tmp_path):
     res = runner.invoke(app, ["localize", str(dataset), "--out", str(tmp_path / "c"), "--kidnap-at", "20",
                               "--init", "pose"])
     assert res.exit_code == 1 and "kidnap-min-jump" in res.output and "Traceback" not in res.output
-    res = runner.invoke(app, ["localize", str(tmp_path), "--out", str(tmp_path / "d")])
+    (tmp_path / "not-a-log").mkdir()
+    res = runner.invoke(app, ["localize", str(tmp_path / "not-a-log"), "--out", str(tmp_path / "d")])
     assert res.exit_code == 1 and "map.yaml" in res.output
     assert not any((tmp_path / n).exists() for n in "abcd")

@@ -274,6 +274,24 @@ def _check_inputs(root: Path, settings: dict, data: Path, images, runs, describe
     problems.raise_if_any(f"{data}: cannot check {root} with it; nothing was written")
 
 
+def _read_baseline(root: Path, given: Path) -> dict:
+    """evaluation/baseline.json of a verified bundle; a BundleError naming it (and the bundle given) unless it
+    is the JSON object export writes (per-area figures and `all`)."""
+    from pipeline.bundle.measure import BASELINE_FILE
+    from pipeline.runtime.bundle import BundleError, shown
+
+    where = shown(root, BASELINE_FILE, given if Path(given).is_file() else None)
+    try:
+        doc = json.loads((root / BASELINE_FILE).read_bytes())
+    except (ValueError, RecursionError, OSError) as exc:
+        raise BundleError(f"{where}: not readable JSON ({exc}); export the bundle again") from None
+    areas = doc.get("areas", {}) if isinstance(doc, dict) else None
+    if (not isinstance(areas, dict) or not all(isinstance(v, dict) for v in areas.values())
+            or not isinstance(doc.get("all") or {}, dict)):
+        raise BundleError(f"{where}: not the per-area figures export writes; export the bundle again")
+    return doc
+
+
 def run_check(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path], localize: bool = True,
               force: bool = False, progress: bool = True) -> Path:
     """report.json / report.md / drift.png (and localization/ when the new data has query runs) in
@@ -281,29 +299,25 @@ def run_check(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str,
     import math
     import tempfile
 
-    import yaml
-
     from pipeline.bundle.measure import BASELINE_FILE, BundleRetriever, image_keys, measure
-    from pipeline.errors import OutputExistsError
     from pipeline.io import tables
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
     from pipeline.io.map_yaml import read_map
-    from pipeline.runtime.bundle import open_bundle, read_manifest
+    from pipeline.runtime.bundle import BundleError, open_bundle, read_manifest, read_settings, shown
     from pipeline.update.areas import cell_owners, stops_of
 
     out, data = Path(outputs["out"]), Path(inputs["data"])
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     with tempfile.TemporaryDirectory(prefix="siteloc-check-") as work:
         root = open_bundle(Path(inputs["bundle"]), Path(work) if Path(inputs["bundle"]).is_file() else None)
         manifest = read_manifest(root)
         if not (root / "db" / "images.parquet").is_file():
-            from pipeline.runtime.bundle import BundleError
-
-            raise BundleError(f"{root / 'db' / 'images.parquet'}: missing; the bundle was exported before bundles "
-                              f"named their stops: export it again with this siteloc to check it")
+            given = Path(inputs["bundle"])
+            raise BundleError(f"{shown(root, 'db/images.parquet', given if given.is_file() else None)}: missing; the "
+                              f"bundle was exported before bundles named their stops: export it again with this "
+                              f"siteloc to check it")
         images, boxes, runs, site = _read_new(data)
-        settings = yaml.safe_load((root / "filter.yaml").read_text())
+        settings = read_settings(root)  # checked by open_bundle already
         retriever = BundleRetriever.from_dir(root, settings["retrieval"])
         _check_inputs(root, settings, data, images, runs, retriever.describer.image_hw)
         bundle_images = tables.read_table(root / "db" / "images.parquet", "images")
@@ -311,7 +325,7 @@ def run_check(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str,
             (root / "models" / "describer.json").read_text()).get("classes") or [])
         c = cfg.check
         figures = {"areas": {}, "all": None}
-        baseline = json.loads((root / BASELINE_FILE).read_text()) if (root / BASELINE_FILE).is_file() else None
+        baseline = _read_baseline(root, inputs["bundle"]) if (root / BASELINE_FILE).is_file() else None
         neighbour = ((baseline or {}).get("all") or {}).get("neighbour_similarity")
         if images is not None and images.num_rows:
             keys = image_keys(images, bundle_images, cfg.update.proximity_m)
@@ -334,7 +348,7 @@ def run_check(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str,
                "thresholds": c.model_dump(mode="json"),
                "warnings": [f"{data / 'site.yaml'}: site '{site.name}', the bundle's is '{manifest.get('site')}'"]
                if site is not None and site.name != manifest.get("site") else []}
-        with atomic_dir(out, force=force) as tmp:
+        with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
             if localize and has_queries:
                 from pipeline.evaluation.report import run_evaluate
 

@@ -204,15 +204,14 @@ def next_version(version: str) -> str:
 
 def figures_on(root: Path, data: Path, cfg, *, progress: bool = True) -> dict:
     """`pipeline.bundle.measure` of the bundle at `root` on the images of the ingested site `data`."""
-    import yaml
-
     from pipeline.bundle.measure import BundleRetriever, image_keys, measure
     from pipeline.io import tables
     from pipeline.io.site import read_site
+    from pipeline.runtime.bundle import read_settings
 
     images = tables.read_table(data / "images.parquet", "images")
     boxes = tables.read_table(data / "boxes.parquet", "boxes") if (data / "boxes.parquet").is_file() else None
-    settings = yaml.safe_load((root / "filter.yaml").read_text())
+    settings = read_settings(root)
     keys = image_keys(images, tables.read_table(root / STOPS_FILE, "images"), cfg.update.proximity_m)
     return measure(BundleRetriever.from_dir(root, settings["retrieval"]), data, images, boxes, keys,
                    check=cfg.check, classes=list(read_site(data / "site.yaml").classes), progress=progress)
@@ -243,19 +242,18 @@ def run_diff(cfg, *, inputs: dict[str, Path], outputs: dict[str, Path], force: b
     inputs['data'] when given; written as diff.json / diff.md into outputs['out'] when given."""
     import tempfile
 
-    from pipeline.errors import OutputExistsError
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
-    from pipeline.runtime.bundle import open_bundle
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
+    from pipeline.runtime.bundle import open_bundle, read_manifest
 
     out = outputs.get("out")
-    if out is not None and Path(out).exists() and not force:
-        raise OutputExistsError(Path(out))
+    if out is not None:
+        check_output(Path(out), force=force, inputs=inputs.values())
     with tempfile.TemporaryDirectory(prefix="siteloc-diff-") as work:
         roots = []
         for i, key in enumerate(("a", "b")):
             p = Path(inputs[key])
             roots.append(open_bundle(p, Path(work) / str(i) if p.is_file() else None))
-        views = [read_view(r, json.loads((r / "manifest.json").read_text())) for r in roots]
+        views = [read_view(r, read_manifest(r)) for r in roots]  # both verified by open_bundle
         for v, key in zip(views, ("a", "b"), strict=True):
             if Path(inputs[key]).is_file():
                 v.name = Path(inputs[key]).name.removesuffix(".tar.gz").removesuffix(".tgz")
@@ -268,7 +266,7 @@ def run_diff(cfg, *, inputs: dict[str, Path], outputs: dict[str, Path], force: b
             text += figures_md(fa, fb, views[0].name, views[1].name)
     d["markdown"] = text
     if out is not None:
-        with atomic_dir(Path(out), force=force) as tmp:
+        with atomic_dir(Path(out), force=force, inputs=inputs.values()) as tmp:
             write_text_atomic(tmp / "diff.json", json.dumps({k: v for k, v in d.items() if k != "markdown"},
                                                             indent=2) + "\n")
             write_text_atomic(tmp / "diff.md", text)

@@ -13,16 +13,24 @@ db/images.parquet names the database's stops (labels, poses, image sha256) and e
 holds the bundle's own retrieval and detector figures per area on the ingest's held-out stops, which
 `siteloc check` compares new captures against; with `inputs['parent']` the bundle is the parent's next
 version and carries changelog.json / .md (pipeline.bundle.diff).
+`publish_bundle` builds the .tar.gz from the temporary directory and publishes it before the directory, so
+a published directory always has its archive; `complete_archive` rebuilds the archive of a directory an
+older, interrupted export left without one.
 The layout and the checks the runtime makes are in `pipeline.runtime.bundle`.
 """
 
 from __future__ import annotations
 
+import contextlib
+import glob
+import gzip
+import hashlib
 import json
 import os
 import shutil
 import subprocess
 import tarfile
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -33,6 +41,7 @@ from pipeline.bundle.diff import STOPS_FILE
 from pipeline.bundle.provenance import provenance
 from pipeline.config import SitelocConfig
 from pipeline.errors import InputError, Problem
+from pipeline.io.atomic import refuse_overlap
 from pipeline.runtime.bundle import MANIFEST, SCHEMA_VERSION, sha256_of
 
 DB_FILES = ("database_ipa.parquet", "catalog.parquet", "report.json")
@@ -75,6 +84,7 @@ def laser_settings(data: Path) -> dict:
 
         laser = read_site(data / "site.yaml").laser
         return {"angle_min": laser.angle_min, "angle_increment": laser.angle_increment, "range_max": laser.range_max,
+                "beams": laser.beams,
                 "base_from_laser": [laser.mount.x, laser.mount.y, math.radians(laser.mount.yaw_deg)]}
     runs = sorted((data / "runs").glob("*.parquet"))
     if not runs:
@@ -84,7 +94,7 @@ def laser_settings(data: Path) -> dict:
 
     t = tables.read_table(runs[0], "runs").slice(0, 1).to_pydict()
     return {"angle_min": float(t["angle_min"][0]), "angle_increment": float(t["angle_increment"][0]),
-            "range_max": float(t["range_max"][0]), "base_from_laser": [0.0, 0.0, 0.0]}
+            "range_max": float(t["range_max"][0]), "beams": len(t["ranges"][0]), "base_from_laser": [0.0, 0.0, 0.0]}
 
 
 def write_manifest(root: Path, meta: dict) -> Path:
@@ -98,13 +108,114 @@ def write_manifest(root: Path, meta: dict) -> Path:
     return write_text_atomic(root / MANIFEST, json.dumps(doc, indent=2, sort_keys=False) + "\n")
 
 
-def _archive(bundle: Path) -> Path:
+def archive_of(bundle: Path) -> Path:
+    """The archive export writes beside the bundle directory `bundle`."""
+    return bundle.with_name(bundle.name + ".tar.gz")
+
+
+def clean_stale(out: Path) -> None:
+    """Remove what an interrupted export of `out` left beside it: temporary directories and archives."""
+    name = glob.escape(Path(out).name)
+    for p in Path(out).parent.glob(f".{name}.tmp-*"):
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+    for p in Path(out).parent.glob(f".{name}.tar.gz.*.tmp-write"):
+        p.unlink(missing_ok=True)
+
+
+def write_archive(src: Path, target: Path, name: str) -> Path:
+    """`target`: the bundle directory `src` as `<name>/` in a .tar.gz, manifest.json first (so a reader
+    meets it without decompressing the rest), owners dropped; written atomically (a temporary sibling
+    renamed into place)."""
     from pipeline.io.atomic import atomic_file
 
-    target = bundle.with_name(bundle.name + ".tar.gz")
-    with atomic_file(target, "wb") as fh, tarfile.open(fileobj=fh, mode="w:gz") as tar:
-        tar.add(bundle, arcname=bundle.name, filter=lambda m: m.replace(uid=0, gid=0, uname="", gname="", deep=False))
-    return target
+    def plain(m: tarfile.TarInfo) -> tarfile.TarInfo:
+        return m.replace(uid=0, gid=0, uname="", gname="", deep=False)
+
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    src = Path(src)
+    with atomic_file(target, "wb") as fh:
+        with (gzip.GzipFile(filename=Path(target).name, mode="wb", fileobj=fh,
+                            mtime=int(epoch) if epoch else None) as gz,
+              tarfile.open(fileobj=gz, mode="w") as tar):
+            tar.add(src, arcname=name, recursive=False, filter=plain)
+            tar.add(src / MANIFEST, arcname=f"{name}/{MANIFEST}", filter=plain)
+            for child in sorted(src.iterdir()):
+                if child.name != MANIFEST:
+                    tar.add(child, arcname=f"{name}/{child.name}", filter=plain)
+    return Path(target)
+
+
+def archive_matches(archive: Path, root: Path, manifest: dict) -> bool:
+    """Whether `archive` holds exactly the files of the bundle directory `root` (its manifest and what the
+    manifest lists, each of that size and sha256), read through once without unpacking."""
+    from pipeline.runtime.bundle import ARCHIVE_ERRORS
+
+    archive, root = Path(archive), Path(root)
+    if archive.is_symlink() or not archive.is_file():
+        return False
+    name = root.name
+    want = {f"{name}/{rel}": (e["size"], e["sha256"]) for rel, e in manifest["files"].items()}
+    want[f"{name}/{MANIFEST}"] = ((root / MANIFEST).stat().st_size, sha256_of(root / MANIFEST))
+    seen = set()
+    try:
+        with tarfile.open(archive, "r:gz") as tar:
+            for m in tar:
+                if m.isdir() and (m.name == name or m.name.startswith(f"{name}/")):
+                    continue
+                if not m.isfile() or m.name not in want or m.name in seen:
+                    return False
+                h, f = hashlib.sha256(), tar.extractfile(m)
+                while block := f.read(1 << 20):
+                    h.update(block)
+                if (m.size, h.hexdigest()) != want[m.name]:
+                    return False
+                seen.add(m.name)
+    except ARCHIVE_ERRORS:
+        return False
+    return seen == set(want)
+
+
+def complete_archive(out: Path) -> bool:
+    """For an existing bundle directory `out` (no --force): False when its archive is there and holds
+    exactly its files; otherwise (an export interrupted before its archive was published, an archive
+    damaged or of another export) the directory is verified and the archive rebuilt from it: True.
+    BundleError, saying to export again with --force, when the directory itself does not verify."""
+    from pipeline.runtime.bundle import BundleError, read_manifest, verify_bundle
+
+    out = Path(out)
+    target = archive_of(out)
+    clean_stale(out)
+    try:
+        if archive_matches(target, out, read_manifest(out)):
+            return False
+        verify_bundle(out)
+    except BundleError as exc:
+        raise BundleError(f"{out}: exists, but {target.name} is missing or does not match it and the directory does "
+                          f"not verify: {exc}\n  fix: export it again with --force") from None
+    write_archive(out, target, out.name)
+    return True
+
+
+@contextlib.contextmanager
+def publish_bundle(out: Path, *, inputs, force: bool = False, archive: bool = True) -> Iterator[Path]:
+    """A temporary directory to write the bundle `out` into. When the block completes (manifest written),
+    the archive is written from it and published first, then the directory: a published directory always
+    has its archive. An interruption leaves no directory (at most the archive, which the next export
+    replaces) or, with `force`, the old directory beside the new archive (the next export rebuilds the
+    archive or, with --force, both); stale temporaries of an interrupted export are removed first."""
+    from pipeline.io.atomic import atomic_dir
+
+    out = Path(out)
+    clean_stale(out)
+    with atomic_dir(out, force=force, inputs=inputs) as tmp:
+        yield tmp
+        if archive:
+            write_archive(tmp, archive_of(out), out.name)
+        else:
+            archive_of(out).unlink(missing_ok=True)  # an earlier export's archive would not match the directory
 
 
 def export_sequence(cfg: SitelocConfig, seq_dir: Path, tmp: Path, images: list) -> dict:
@@ -205,13 +316,15 @@ def write_changelog(tmp: Path, parent: tuple[Path, dict], *, site: str, version:
 
 
 def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path], force: bool = False,
-               progress: bool = True) -> Path:
-    """Write `<out>/<site>-<version>/` (+ .tar.gz); returns the bundle directory."""
+               progress: bool = True, on_note: Callable[[str], None] | None = None) -> Path:
+    """Write `<out>/<site>-<version>/` (+ .tar.gz, published before the directory); returns the bundle
+    directory. Without `force`, an existing directory whose archive is missing or does not match (an
+    interrupted export) gets its archive rebuilt from the verified directory (`on_note` is told)."""
     from pipeline.detection.inference import load_detector, load_image
     from pipeline.detection.onnx_export import check_parity, export_describer
     from pipeline.errors import OutputExistsError
     from pipeline.io import tables
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import write_text_atomic
     from pipeline.io.map_yaml import read_map, write_map
 
     data, model, index = Path(inputs["data"]), Path(inputs["model"]), Path(inputs["index"])
@@ -239,7 +352,13 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
                                                      fix="give --parent the previous bundle of this site")])
     name = f"{site}-{cfg.export.version}"
     out = Path(outputs["out"]) / name
+    refuse_overlap(out, inputs.values())
     if out.exists() and not force:
+        if cfg.export.archive and complete_archive(out):
+            if on_note:
+                on_note(f"{out} was there without a matching {archive_of(out).name} (an interrupted export): the "
+                        f"archive was rebuilt from the verified directory; --force exports again from the inputs")
+            return out
         raise OutputExistsError(out)
     catalog = tables.read_table(index / "catalog.parquet", "catalog").column("image_id").to_pylist()
     probe = [data / i for i in catalog[:: max(1, len(catalog) // cfg.export.parity_images)][: cfg.export.parity_images]]
@@ -253,7 +372,7 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
 
     backbone = load_backbone(r.backbone, r.backbone_weights)  # None: the detector's own map
     check_backbone(recorded_backbone(index), backbone, index)
-    with atomic_dir(out, force=force) as tmp:
+    with publish_bundle(out, force=force, archive=cfg.export.archive, inputs=inputs.values()) as tmp:
         (tmp / "map").mkdir()
         write_map(tmp / "map" / "map.yaml", read_map(data / "map.yaml"), "map.pgm")
         (tmp / "db").mkdir()
@@ -298,6 +417,4 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
             "database": {"images": db_report.get("images"), "regions": db_report.get("regions"),
                          "whitening": db_report.get("whitening")},
             "inputs": {k: str(v) for k, v in inputs.items()}, "config": cfg.model_dump(mode="json")})
-    if cfg.export.archive:
-        _archive(out)
     return out

@@ -36,14 +36,14 @@ class BundleRetriever:
 
     @classmethod
     def from_dir(cls, root: Path, retrieval: dict | None = None) -> BundleRetriever:
-        import yaml
-
         from pipeline.retrieval.database import load_database
         from pipeline.runtime.describer import OnnxDescriber
 
         root = Path(root)
         if retrieval is None:
-            retrieval = yaml.safe_load((root / "filter.yaml").read_text())["retrieval"]
+            from pipeline.runtime.bundle import read_settings
+
+            retrieval = read_settings(root)["retrieval"]
         return cls(OnnxDescriber(root / "models" / "describer.onnx", root / "models" / "describer.json",
                                  threads=None), load_database(root / "db"), retrieval)
 

@@ -10,7 +10,6 @@ model shows there).
 
 from __future__ import annotations
 
-import csv
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,8 +17,9 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from pipeline.errors import InputError, Problem, Problems
+from pipeline.errors import InputError, Problem, Problems, excerpt
 from pipeline.io.captures import parse_pose
+from pipeline.io.text_files import read_csv
 from pipeline.runtime.motion import wrap_angle
 
 ANCHOR_COLUMNS = ("image", "x", "y", "theta")
@@ -74,35 +74,33 @@ def read_anchors(path: Path, names: set[str], problems: Problems) -> list[Anchor
         return []
     anchors: list[Anchor] = []
     seen: dict[str, int] = {}
-    with path.open(newline="") as fh:
-        reader = csv.DictReader(fh)
-        header = [h.strip() for h in (reader.fieldnames or [])]
-        missing = [c for c in ANCHOR_COLUMNS if c not in header]
-        if missing:
+    table = read_csv(path, problems)
+    if table is None:
+        return []
+    missing = [c for c in ANCHOR_COLUMNS if c not in table.header]
+    if missing:
+        problems.add(path, f"missing columns {missing} (found {excerpt(table.header, 200)})", row=1,
+                     fix="the header needs image,x,y,theta")
+        return []
+    for line, rec in table.rows:
+        bad: list[str] = []
+        nums = parse_pose(rec, bad)
+        name = rec["image"]
+        if name not in names and name.startswith("images/") and name[len("images/") :] in names:
+            name = name[len("images/") :]
+        if not rec["image"]:
+            bad.append("image is empty")
+        elif name not in names:
+            bad.append(f"image '{excerpt(rec['image'])}' is not in the COLMAP model")
+        elif name in seen:
+            bad.append(f"image '{excerpt(rec['image'])}' is listed twice (first on line {seen[name]})")
+        if bad:
             problems.add(
-                path, f"missing columns {missing} (found {header})", row=1, fix="the header needs image,x,y,theta"
+                path, "; ".join(bad), row=line, fix="correct the row or remove it (names as in images.txt)"
             )
-            return []
-        for line, rec in enumerate(reader, start=2):
-            rec = {k.strip(): (v or "").strip() for k, v in rec.items() if k is not None}
-            bad: list[str] = []
-            nums = parse_pose(rec, bad)
-            name = rec["image"]
-            if name not in names and name.startswith("images/") and name[len("images/") :] in names:
-                name = name[len("images/") :]
-            if not rec["image"]:
-                bad.append("image is empty")
-            elif name not in names:
-                bad.append(f"image '{rec['image']}' is not in the COLMAP model")
-            elif name in seen:
-                bad.append(f"image '{rec['image']}' is listed twice (first on line {seen[name]})")
-            if bad:
-                problems.add(
-                    path, "; ".join(bad), row=line, fix="correct the row or remove it (names as in images.txt)"
-                )
-                continue
-            seen[name] = line
-            anchors.append(Anchor(line, name, nums["x"], nums["y"], nums["theta"]))
+            continue
+        seen[name] = line
+        anchors.append(Anchor(line, name, nums["x"], nums["y"], nums["theta"]))
     return anchors
 
 

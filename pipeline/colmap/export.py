@@ -22,7 +22,7 @@ import pycolmap
 from pipeline.colmap.align import cam_from_map
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem, Problems
-from pipeline.io.atomic import atomic_dir
+from pipeline.io.atomic import atomic_dir, check_output
 from pipeline.io.captures import CaptureRow, check_stops, read_captures
 from pipeline.io.site import Camera, Site, read_site
 from pipeline.runtime.motion import wrap_angle
@@ -149,7 +149,8 @@ def run_export_colmap(
     _, names = image_names(rows)
     rec = build_reconstruction(site, rows, names, camera_height)
     out = Path(outputs["out"])
-    with atomic_dir(out, force=force) as tmp:
+    check_output(out, force=force, inputs=inputs.values())
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         if text:
             rec.write_text(str(tmp))
         else:

@@ -28,7 +28,7 @@ from pipeline.colmap.align import align, check_anchor_layout, map_pose, read_anc
 from pipeline.colmap.report import alignment_warnings, build_report, report_md
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem, Problems
-from pipeline.io.atomic import atomic_dir, write_text_atomic
+from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
 from pipeline.io.captures import site_relative
 from pipeline.io.map_yaml import OCCUPIED, OccupancyMap, read_map, write_map
 from pipeline.io.site import Camera, Distortion, Site, validation_problems, write_site
@@ -202,7 +202,7 @@ def check_stop(stop: Stop, site: Site, occ: OccupancyMap, tol_m: float, tol_deg:
 
 def check_images(images_dir: Path, stops: list[Stop], camera: Camera, problems: Problems) -> None:
     """Every image of a kept stop exists under --images, inside it, with the camera's size."""
-    from PIL import Image, UnidentifiedImageError
+    from pipeline.io.images import ImageError, image_size
 
     missing = []
     for name in sorted(v.name for s in stops for _, v in s.views):
@@ -212,11 +212,10 @@ def check_images(images_dir: Path, stops: list[Stop], camera: Camera, problems: 
         elif not full.is_file():
             missing.append(name)
         else:
-            try:
-                with Image.open(full) as im:
-                    size = im.size
-            except (UnidentifiedImageError, OSError, ValueError) as exc:
-                problems.add(full, f"unreadable image: {exc}", fix="re-export it as JPEG or PNG")
+            try:  # the header only, as before: the stages that decode the images name a damaged one
+                size = image_size(full)
+            except ImageError as exc:
+                problems.add(full, f"unreadable image: {exc.message}", fix=exc.fix)
                 continue
             if size != (camera.width, camera.height):
                 problems.add(full, f"image is {size[0]}x{size[1]}, its COLMAP camera {camera.width}x{camera.height}")
@@ -267,6 +266,7 @@ def run_ingest_colmap(
 
     ing = cfg.ingest
     out = Path(outputs["out"])
+    check_output(out, force=force, inputs=inputs.values())
     model_dir, images_dir = Path(inputs["model"]), Path(inputs["images"])
     anchors_path = Path(inputs["anchors"]) if inputs.get("anchors") else None
     problems = Problems()
@@ -351,7 +351,7 @@ def run_ingest_colmap(
 
     warnings = alignment_warnings(alignment, views, ing, upside_down, len(left_out), len(stops))
 
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         names = sorted(v.name for s in kept for _, v in s.views)
         for n in progress_bar(names, desc="linking images", unit="img", enabled=progress, leave=False):
             _link_or_copy(images_dir / n, tmp / "images" / n, ing.link_images)

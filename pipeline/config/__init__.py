@@ -129,7 +129,9 @@ def load_config(preset: str | Path = "demo", overrides: list[str] | None = None)
     """Load a preset and apply `key.sub=value` overrides (values parsed as YAML)."""
     path = resolve_preset(preset)
     try:
-        raw = yaml.safe_load(path.read_text()) or {}
+        from pipeline.io.text_files import read_text
+
+        raw = yaml.safe_load(read_text(path, what="config file")) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from None
     if not isinstance(raw, dict):

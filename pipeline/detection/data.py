@@ -107,9 +107,10 @@ class DetectionDataset:
         from torchvision.transforms import ColorJitter
         from torchvision.transforms.functional import pil_to_tensor
 
+        from pipeline.io.images import open_image
+
         s = self.samples[i]
-        with Image.open(s.path) as im:
-            img = im.convert("RGB")
+        img = open_image(s.path)
         scale = scale_for(s.width, s.height, self.max_side)
         if scale != 1.0:
             img = img.resize((round(s.width * scale), round(s.height * scale)), Image.BILINEAR)

@@ -75,15 +75,13 @@ def run_evaluate_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], output
                           force: bool = False, progress: bool = True) -> Path:
     from pipeline.detection.data import load_samples
     from pipeline.detection.inference import detector_features, load_detector, load_image
-    from pipeline.errors import OutputExistsError
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
     from pipeline.io.tracked import write_headline, write_plot_table
     from pipeline.progress import progress_bar
 
     d = cfg.detector
     out = Path(outputs["out"])
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     det = load_detector(Path(inputs["model"]), device=d.device)
     det.model.roi_heads.nms_thresh = d.box_nms_thresh  # a test-time setting: the config's, not the training run's
     _, splits, classes = load_samples(Path(inputs["data"]))
@@ -116,7 +114,7 @@ def run_evaluate_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], output
                "backbone": det.config["builder"]["backbone"], **scores,
                "images_per_s": round(len(samples) / max(seconds, 1e-9), 3), "device": str(det.device),
                "box_nms_thresh": d.box_nms_thresh}
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         write_text_atomic(tmp / "metrics.json", json.dumps(metrics, indent=2) + "\n")
         write_headline(tmp, {"map_50": scores["map_50"], "map_50_95": scores["map_50_95"]})
         write_plot_table(tmp, "ap_per_class", ["class", "ap_50", "ap_50_95"],
@@ -140,9 +138,9 @@ def predictions_figure(path: Path, samples, found, classes: list[str], min_score
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from PIL import Image
 
     from pipeline.evaluation.plots import save_figure
+    from pipeline.io.images import open_image
 
     picks = np.unique(np.linspace(0, len(samples) - 1, min(n, len(samples))).round().astype(int))
     cols = min(4, len(picks))
@@ -153,8 +151,7 @@ def predictions_figure(path: Path, samples, found, classes: list[str], min_score
         ax.axis("off")
     for ax, k in zip(axes.ravel(), picks, strict=False):  # the last row may have empty axes
         s, f = samples[k], found[k]
-        with Image.open(s.path) as im:
-            ax.imshow(im.convert("RGB"))
+        ax.imshow(open_image(s.path))
         for b in s.boxes:
             ax.add_patch(plt.Rectangle(b[:2], b[2] - b[0], b[3] - b[1], fill=False, ls="--", lw=1.0,
                                        ec="white"))

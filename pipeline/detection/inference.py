@@ -140,9 +140,10 @@ def region_max(fmap: torch.Tensor, boxes: np.ndarray, stride: float) -> np.ndarr
 
 
 def load_image(path: Path) -> torch.Tensor:
-    """An image file as a (3, H, W) float tensor in [0, 1]."""
-    from PIL import Image
+    """An image file as a (3, H, W) float tensor in [0, 1]; refused (InputError naming it) unless it decodes
+    faithfully to 8-bit RGB."""
     from torchvision.transforms.functional import pil_to_tensor
 
-    with Image.open(path) as im:
-        return pil_to_tensor(im.convert("RGB")).float() / 255.0
+    from pipeline.io.images import open_image
+
+    return pil_to_tensor(open_image(path)).float() / 255.0

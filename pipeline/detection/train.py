@@ -61,17 +61,14 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     from pipeline.detection.builders import build_detector, use_channels_last
     from pipeline.detection.data import DetectionDataset, load_samples, repeat_factors, split_by_stop
     from pipeline.detection.inference import pick_device
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
     from pipeline.io.checkpoint import resume_state, save_checkpoint
     from pipeline.io.tracked import write_headline, write_plot_table
     from pipeline.progress import progress_bar
 
     d = cfg.detector
     out = Path(outputs["out"])
-    if out.exists() and not force:
-        from pipeline.errors import OutputExistsError
-
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     init_dir = Path(inputs["init_from"]) if inputs.get("init_from") is not None else None
     if init_dir is not None:
         _init_files(init_dir)  # before reading the site: a mistyped path fails at once
@@ -157,7 +154,7 @@ def run_train_detector(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     train_s = time.perf_counter() - t0
     model.eval()
     val_loss = _validation_loss(model, val, d.max_side, device)
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         save_file({k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
                   str(tmp / "weights.safetensors"))
         record = {"builder": args, "classes": classes, "weights_source": weights_source}

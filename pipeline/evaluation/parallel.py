@@ -11,8 +11,9 @@ single-threaded Python, numpy and numba, so processes rather than threads:
    then include describing frames).
 2. `replay_in_processes`: `workers` spawned processes (onnxruntime sessions must not cross a fork) each
    open the bundle again (checksums verified; the range table comes from the on-disk cache), take the
-   parent's filter settings and the retrieval cache, and replay jobs as they come. The sequence model's frame
-   logits are computed in each worker when its replays need them.
+   parent's filter settings and the retrieval cache, and replay jobs as they come; each dies with the parent
+   (`pipeline.workers.die_with_parent`). The sequence model's frame logits are computed in each worker
+   when its replays need them.
 
 Per-update times (`ms / update`) are measured with `workers` replays sharing the machine.
 """
@@ -58,8 +59,11 @@ def prefetch_retrievals(loc, data: Path, runs: list, retrieve, *, threads: int, 
     bar.close()
 
 
-def _start_worker(root: str, filter_config: dict, retrieval: dict, base_seed: int, cache: dict, data: str,
-                  runs: list, threshold_m: float, hold: int) -> None:
+def _start_worker(parent_pid: int, root: str, filter_config: dict, retrieval: dict, base_seed: int, cache: dict,
+                  data: str, runs: list, threshold_m: float, hold: int) -> None:
+    from pipeline.workers import die_with_parent
+
+    die_with_parent(parent_pid)  # first: a parent killed while the bundle loads must take this worker along
     from pipeline.config import FilterConfig
     from pipeline.evaluation.jobs import CachedRetrieval, PerImageCache
     from pipeline.runtime.localizer import Localizer
@@ -87,13 +91,14 @@ def replay_in_processes(loc, data: Path, runs: list, jobs: list[tuple[str, int, 
                         threshold_m: float, hold: int, progress: bool = True) -> list:
     """The Replay of each (method, run index, trial) job, in job order, from `workers` processes."""
     import multiprocessing
+    import os
     from concurrent.futures import ProcessPoolExecutor
     from concurrent.futures.process import BrokenProcessPool
 
     from pipeline.progress import progress_bar
 
-    args = (str(loc.root), loc.filter_config.model_dump(mode="json"), dict(loc.retrieval), int(loc.base_seed),
-            dict(retrieve.cache), str(data), runs, threshold_m, hold)
+    args = (os.getpid(), str(loc.root), loc.filter_config.model_dump(mode="json"), dict(loc.retrieval),
+            int(loc.base_seed), dict(retrieve.cache), str(data), runs, threshold_m, hold)
     bar = progress_bar(total=len(jobs), desc=f"experiments ({workers} processes)", unit="replay", enabled=progress)
     out = []
     try:

@@ -227,18 +227,16 @@ def render_report(doc: dict) -> str:
 
 def run_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path], force: bool = False,
                  progress: bool = True) -> Path:
-    from pipeline.errors import OutputExistsError
     from pipeline.evaluation import report_figures as figs
     from pipeline.io import tables
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
     from pipeline.localize import estimate_columns
     from pipeline.machine import machine_summary
     from pipeline.runtime.localizer import Localizer
 
     e = cfg.evaluate
     out, data = Path(outputs["out"]), Path(inputs["data"])
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     t0 = time.perf_counter()
     loc = Localizer.from_bundle(Path(inputs["bundle"]), seed=cfg.filter.seed)
     check_same_map(loc.occupancy, data)
@@ -261,7 +259,7 @@ def run_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[s
            "table1": table1(results, retrieve, data, runs),
            "replays": {m: [{"run": r.run, "trial": r.trial, **r.metrics} for r in results[m]] for m in results}}
     by_name = {r.name: r for r in runs}
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         truth_written: set[str] = set()
         for m, reps in results.items():
             rows: dict[str, list] = {f.name: [] for f in tables.ESTIMATES}

@@ -6,10 +6,10 @@ import contextlib
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from pipeline.errors import OutputExistsError
+from pipeline.errors import OutputExistsError, OutputOverlapsInputError
 
 
 def _umask() -> int:
@@ -54,17 +54,55 @@ def write_bytes_atomic(path: Path, data: bytes) -> Path:
     return Path(path)
 
 
+def _flat(inputs) -> Iterator[Path | str]:
+    for item in inputs:
+        if isinstance(item, list | tuple | set | frozenset):
+            yield from _flat(item)
+        elif isinstance(item, str | os.PathLike):
+            yield item
+
+
+def refuse_overlap(out: Path, inputs: Iterable[Path | str | None]) -> None:
+    """OutputOverlapsInputError when `out` is, is inside, or contains one of `inputs`.
+
+    `--force` replaces the output directory as a whole, so an output that overlaps an input would
+    destroy it (or leave a site with a foreign folder inside); links are resolved first.
+    """
+    target = Path(out).expanduser().resolve()
+    for given in _flat(inputs):
+        source = Path(given).expanduser().resolve()
+        if target == source:
+            how = "is the input"
+        elif target.is_relative_to(source):
+            how = "is inside the input"
+        elif source.is_relative_to(target):
+            how = "contains the input"
+        else:
+            continue
+        raise OutputOverlapsInputError(
+            f"output {out} {how} {given}; writing it would replace or alter that input. Nothing was written: "
+            f"give --out a separate path (e.g. beside the input, not in it)")
+
+
+def check_output(out: Path, *, force: bool, inputs: Iterable[Path | str | None]) -> None:
+    """What a stage checks before it starts work: the output does not overlap an input and, without
+    `force`, does not exist yet."""
+    refuse_overlap(out, inputs)
+    if Path(out).exists() and not force:
+        raise OutputExistsError(Path(out))
+
+
 @contextlib.contextmanager
-def atomic_dir(out: Path, *, force: bool = False) -> Iterator[Path]:
+def atomic_dir(out: Path, *, force: bool = False, inputs: Iterable[Path | str | None]) -> Iterator[Path]:
     """Yield a temporary directory beside `out`; it becomes `out` only when the block completes.
 
     With `force`, an existing `out` is moved aside first and deleted only after the new one is in
     place, so an interruption at any moment leaves either the old or the new output, never a mix.
-    Leftover temporaries from an interrupted earlier run are removed.
+    Leftover temporaries from an interrupted earlier run are removed. `inputs` are the paths the step
+    reads: an `out` that overlaps one of them is refused before anything is touched.
     """
     out = Path(out)
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs)
     out.parent.mkdir(parents=True, exist_ok=True)
     for stale in out.parent.glob(f".{out.name}.tmp-*"):
         shutil.rmtree(stale, ignore_errors=True)

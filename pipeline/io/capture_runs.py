@@ -15,10 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import Problems
+from pipeline.errors import Problems, excerpt
 from pipeline.io.captures import site_relative
 from pipeline.io.map_yaml import OccupancyMap
 from pipeline.io.site import Site
+from pipeline.io.text_files import read_csv
 
 REQUIRED = ("t", "odom_x", "odom_y", "odom_theta")
 OPTIONAL = ("gt_x", "gt_y", "gt_theta", "image", "kidnapped")
@@ -76,43 +77,42 @@ def read_run(
         problems.add(traj_path, "file is missing", fix="each run folder needs trajectory.csv and scans.npy")
         return None
     t, odom, gt, image, kidnapped, lines = [], [], [], [], [], []
-    with traj_path.open(newline="") as fh:
-        reader = csv.DictReader(fh)
-        header = [h.strip() for h in (reader.fieldnames or [])]
-        missing = [c for c in REQUIRED if c not in header]
-        if missing:
-            problems.add(traj_path, f"missing columns {missing} (found {header})", row=1)
-            return None
-        for line, rec in enumerate(reader, start=2):
-            rec = {k.strip(): (v or "").strip() for k, v in rec.items() if k is not None}
-            try:
-                vals = [float(rec[c]) for c in REQUIRED]
-                if not all(math.isfinite(v) for v in vals):
-                    raise ValueError("t and odometry must be finite")
-                g = [rec.get(c, "") for c in ("gt_x", "gt_y", "gt_theta")]
-                if all(v == "" for v in g):
-                    gvals = [math.nan] * 3
-                elif any(v == "" for v in g):
-                    raise ValueError("gt_x, gt_y, gt_theta must be all given or all empty")
-                else:
-                    gvals = [float(v) for v in g]
-                    if not all(math.isfinite(v) for v in gvals):
-                        raise ValueError("ground truth must be finite or empty")
-                kid = _parse_bool(rec.get("kidnapped", ""))
-            except ValueError as exc:
-                problems.add(traj_path, str(exc), row=line, fix="correct or remove this row")
-                continue
-            t.append(vals[0])
-            odom.append(vals[1:])
-            gt.append(gvals)
-            img = rec.get("image", "") or None
-            if img is not None:
-                full = site_relative(root, img)
-                if full is None or not full.is_file():
-                    problems.add(traj_path, f"image '{img}' does not exist inside the site", row=line)
-            image.append(img)
-            kidnapped.append(kid)
-            lines.append(line)
+    table = read_csv(traj_path, problems)
+    if table is None:
+        return None
+    missing = [c for c in REQUIRED if c not in table.header]
+    if missing:
+        problems.add(traj_path, f"missing columns {missing} (found {excerpt(table.header, 200)})", row=1)
+        return None
+    for line, rec in table.rows:
+        try:
+            vals = [float(rec[c]) for c in REQUIRED]
+            if not all(math.isfinite(v) for v in vals):
+                raise ValueError("t and odometry must be finite")
+            g = [rec.get(c, "") for c in ("gt_x", "gt_y", "gt_theta")]
+            if all(v == "" for v in g):
+                gvals = [math.nan] * 3
+            elif any(v == "" for v in g):
+                raise ValueError("gt_x, gt_y, gt_theta must be all given or all empty")
+            else:
+                gvals = [float(v) for v in g]
+                if not all(math.isfinite(v) for v in gvals):
+                    raise ValueError("ground truth must be finite or empty")
+            kid = _parse_bool(rec.get("kidnapped", ""))
+        except ValueError as exc:
+            problems.add(traj_path, excerpt(exc, 120), row=line, fix="correct or remove this row")
+            continue
+        t.append(vals[0])
+        odom.append(vals[1:])
+        gt.append(gvals)
+        img = rec.get("image", "") or None
+        if img is not None:
+            full = site_relative(root, img)
+            if full is None or not full.is_file():
+                problems.add(traj_path, f"image '{excerpt(img)}' does not exist inside the site", row=line)
+        image.append(img)
+        kidnapped.append(kid)
+        lines.append(line)
     if not t:
         if not problems:
             problems.add(traj_path, "no rows", fix="a run needs at least one step")

@@ -7,7 +7,6 @@ root; x, y in metres and theta in radians are the map-frame pose of that view's 
 
 from __future__ import annotations
 
-import csv
 import hashlib
 import math
 from collections import defaultdict
@@ -16,9 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import Problems
+from pipeline.errors import Problems, excerpt
 from pipeline.io.map_yaml import OccupancyMap
 from pipeline.io.site import Site
+from pipeline.io.text_files import read_csv
 from pipeline.runtime.motion import wrap_angle
 
 REQUIRED_COLUMNS = ("image", "stop_id", "view", "x", "y", "theta")
@@ -57,7 +57,7 @@ def parse_pose(rec: dict[str, str], bad: list[str], cols=("x", "y", "theta")) ->
         try:
             nums[col] = float(rec[col])
         except ValueError:
-            bad.append(f"{col} {rec[col]!r} is not a number")
+            bad.append(f"{col} '{excerpt(rec[col])}' is not a number")
             continue
         if not math.isfinite(nums[col]):
             bad.append(f"{col} is {rec[col]} (poses must be finite)")
@@ -70,50 +70,50 @@ def read_captures(path: Path, problems: Problems) -> list[CaptureRow]:
         problems.add(path, "file is missing", fix="list every image with its stop and pose (docs/capture-format.md)")
         return []
     rows: list[CaptureRow] = []
-    with path.open(newline="") as fh:
-        reader = csv.DictReader(fh)
-        header = [h.strip() for h in (reader.fieldnames or [])]
-        missing = [c for c in REQUIRED_COLUMNS if c not in header]
-        if missing:
-            problems.add(
-                path,
-                f"missing columns {missing} (found {header})",
-                row=1,
-                fix=f"the header must contain {', '.join(REQUIRED_COLUMNS + OPTIONAL_COLUMNS)}",
+    table = read_csv(path, problems)
+    if table is None:
+        return []
+    header = table.header
+    missing = [c for c in REQUIRED_COLUMNS if c not in header]
+    if missing:
+        problems.add(
+            path,
+            f"missing columns {missing} (found {excerpt(header, 200)})",
+            row=1,
+            fix=f"the header must contain {', '.join(REQUIRED_COLUMNS + OPTIONAL_COLUMNS)}",
+        )
+        return []
+    unknown = [c for c in header if c not in REQUIRED_COLUMNS + OPTIONAL_COLUMNS]
+    if unknown:
+        problems.warn(path, f"ignoring unknown columns {excerpt(unknown, 200)}", row=1)
+    for line, rec in table.rows:
+        bad = []
+        try:
+            view = int(rec["view"])
+        except ValueError:
+            bad.append(f"view '{excerpt(rec['view'])}' is not an integer")
+            view = -1
+        nums = parse_pose(rec, bad)
+        if not rec["image"]:
+            bad.append("image is empty")
+        if not rec["stop_id"]:
+            bad.append("stop_id is empty")
+        if bad:
+            problems.add(path, "; ".join(bad), row=line, fix="correct or remove this row")
+            continue
+        rows.append(
+            CaptureRow(
+                line,
+                rec["image"],
+                rec["stop_id"],
+                view,
+                nums["x"],
+                nums["y"],
+                nums["theta"],
+                rec.get("room", ""),
+                rec.get("area", ""),
             )
-            return []
-        unknown = [c for c in header if c not in REQUIRED_COLUMNS + OPTIONAL_COLUMNS]
-        if unknown:
-            problems.warn(path, f"ignoring unknown columns {unknown}", row=1)
-        for line, rec in enumerate(reader, start=2):
-            rec = {k.strip(): (v or "").strip() for k, v in rec.items() if k is not None}
-            bad = []
-            try:
-                view = int(rec["view"])
-            except ValueError:
-                bad.append(f"view {rec['view']!r} is not an integer")
-                view = -1
-            nums = parse_pose(rec, bad)
-            if not rec["image"]:
-                bad.append("image is empty")
-            if not rec["stop_id"]:
-                bad.append("stop_id is empty")
-            if bad:
-                problems.add(path, "; ".join(bad), row=line, fix="correct or remove this row")
-                continue
-            rows.append(
-                CaptureRow(
-                    line,
-                    rec["image"],
-                    rec["stop_id"],
-                    view,
-                    nums["x"],
-                    nums["y"],
-                    nums["theta"],
-                    rec.get("room", ""),
-                    rec.get("area", ""),
-                )
-            )
+        )
     if not rows and not problems:
         problems.add(path, "no capture rows", fix="a site needs at least one capture stop")
     return rows
@@ -231,9 +231,9 @@ def check_images(
     problems: Problems,
     progress: bool = True,
 ) -> dict[str, tuple[int, int, str]]:
-    """Open every image; returns image -> (width, height, sha256) for the readable ones."""
-    from PIL import Image, UnidentifiedImageError
-
+    """Open every image (with `decode`, decode it whole: truncation shows only then); returns image -> (width,
+    height, sha256) for the readable ones."""
+    from pipeline.io.images import ImageError, image_size, open_image
     from pipeline.progress import progress_bar
 
     out: dict[str, tuple[int, int, str]] = {}
@@ -244,17 +244,9 @@ def check_images(
         data = full.read_bytes()
         digest = hashlib.sha256(data).hexdigest()
         try:
-            with Image.open(full) as im:
-                if decode:
-                    im.load()
-                w, h = im.size
-        except (UnidentifiedImageError, OSError, ValueError) as exc:
-            problems.add(
-                csv_path,
-                f"image '{r.image}' is unreadable: {exc}",
-                row=r.line,
-                fix="re-export the image as JPEG or PNG",
-            )
+            w, h = open_image(data, name=r.image, rgb=False).size if decode else image_size(data, name=r.image)
+        except ImageError as exc:  # collected: every bad image is reported at once
+            problems.add(csv_path, f"image '{r.image}' is unreadable: {exc.message}", row=r.line, fix=exc.fix)
             continue
         if site is not None and (w, h) != (site.camera.width, site.camera.height):
             problems.add(

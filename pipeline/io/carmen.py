@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.config import LaserLogConfig
-from pipeline.errors import InputError, Problem
+from pipeline.errors import InputError, Problem, excerpt
 
 #: Message types of CARMEN logs that carry nothing siteloc needs (RAWLASER* have no pose).
 KNOWN_IGNORED = frozenset(
@@ -43,7 +43,7 @@ KNOWN_IGNORED = frozenset(
     "ROBOTVELOCITY FOLLOWTRAJECTORY BASEVELOCITY".split()
 )
 LASER_MESSAGES = ("FLASER", "ROBOTLASER1")
-_MESSAGE_NAME = re.compile(r"^[A-Z][A-Z0-9_]*$")
+_MESSAGE_NAME = re.compile(r"^[A-Z][A-Z0-9_]{0,39}$")  # CARMEN's names are short; a 10 MB token is garbage
 _CODE_TOLERANCE = 0.005
 _FIX_SKIP = "repair or delete the line, or pass --skip-bad-lines to skip malformed lines"
 #: Malformed lines described one by one (all are counted): a wrong file must not print 100k lines.
@@ -116,7 +116,7 @@ def _floats(tokens: list[str], what: str) -> np.ndarray:
         values = np.array([float(tok) for tok in tokens], dtype=np.float64)
     except ValueError:
         bad = next(tok for tok in tokens if not _is_float(tok))
-        raise _BadLine(f"{what}: '{bad[:20]}' is not a number") from None
+        raise _BadLine(f"{what}: '{excerpt(bad)}' is not a number") from None
     return values
 
 
@@ -134,7 +134,7 @@ def _count(tokens: list[str], index: int, what: str) -> int:
     try:
         n = int(tokens[index])
     except ValueError:
-        raise _BadLine(f"{what} '{tokens[index][:20]}' is not an integer") from None
+        raise _BadLine(f"{what} '{excerpt(tokens[index])}' is not an integer") from None
     if n < 0:
         raise _BadLine(f"{what} {n} is negative")
     return n
@@ -172,7 +172,7 @@ def _parse_robotlaser1(tokens: list[str], line: int) -> _Scan:
 
 def _check(scan: _Scan, first: _Scan | None) -> None:
     if not all(math.isfinite(v) for v in scan.pose):
-        raise _BadLine(f"pose {scan.pose} is not finite")
+        raise _BadLine("pose ({:g}, {:g}, {:g}) is not finite".format(*scan.pose))
     if scan.ranges.size == 0:
         raise _BadLine("a scan with no beams")
     if (scan.ranges < 0).any():
@@ -234,7 +234,7 @@ def read_carmen(path: Path, cfg: LaserLogConfig | None = None, *, skip_bad_lines
                 kind = "#" if tokens[0].startswith("#") else tokens[0]
                 if kind not in LASER_MESSAGES:
                     if kind != "#" and not _MESSAGE_NAME.match(kind):
-                        bad(lineno, f"'{kind[:20]}' is not a CARMEN message name")
+                        bad(lineno, f"'{excerpt(kind)}' is not a CARMEN message name")
                         continue
                     counts[kind] += 1
                     continue

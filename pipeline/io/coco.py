@@ -12,8 +12,9 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.errors import Problems
+from pipeline.errors import InputError, Problems, excerpt
 from pipeline.io.site import Site
+from pipeline.io.text_files import read_text
 
 
 @dataclass(frozen=True)
@@ -37,9 +38,12 @@ def read_coco_boxes(
 ) -> list[Box]:
     """Validate and convert COCO annotations; each bad annotation is reported by its index and id."""
     try:
-        doc = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        problems.add(path, f"not valid JSON: {exc}", fix="export the annotations as COCO JSON")
+        doc = json.loads(read_text(path, what="annotation file"))
+    except InputError as exc:
+        problems.extend(exc.problems)
+        return []
+    except json.JSONDecodeError as exc:
+        problems.add(path, f"not valid JSON: {excerpt(exc, 120)}", fix="export the annotations as COCO JSON")
         return []
     if not isinstance(doc, dict) or not all(
         isinstance(doc.get(k), list) for k in ("images", "annotations", "categories")

@@ -17,6 +17,8 @@ import yaml
 
 from pipeline.errors import InputError, Problem
 from pipeline.io.atomic import atomic_file, write_text_atomic
+from pipeline.io.images import ImageError
+from pipeline.io.text_files import read_text
 
 FREE, UNKNOWN, OCCUPIED = 0, -1, 100
 _MODES = ("trinary", "scale", "raw")
@@ -99,7 +101,7 @@ def read_map(yaml_path: Path) -> OccupancyMap:
             f"{yaml_path}: map not found", [_problem(yaml_path, "file is missing", fix="add a map_server map.yaml")]
         )
     try:
-        meta = yaml.safe_load(yaml_path.read_text())
+        meta = yaml.safe_load(read_text(yaml_path, what="map description"))
     except yaml.YAMLError as exc:
         raise InputError(f"{yaml_path}: not valid YAML", [_problem(yaml_path, str(exc))]) from None
     if not isinstance(meta, dict):
@@ -149,7 +151,9 @@ def read_map(yaml_path: Path) -> OccupancyMap:
     if image_path is not None and image_path.is_file():
         try:
             pixels, alpha = _load_image(image_path)
-        except (OSError, ValueError) as exc:
+        except ImageError as exc:
+            problems.append(_problem(image_path, f"unreadable map image: {exc.message}", fix=exc.fix))
+        except ValueError as exc:  # a mode PIL cannot convert to RGB (LAB, for one)
             problems.append(_problem(image_path, f"unreadable map image: {exc}", fix="save it as 8-bit PGM or PNG"))
     if problems:
         raise InputError(f"{yaml_path}: invalid map", problems)
@@ -176,20 +180,17 @@ def read_map(yaml_path: Path) -> OccupancyMap:
 
 
 def _load_image(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    from PIL import Image
+    """Grey levels 0-255 and the alpha channel if any. 16-bit and float images are refused (by
+    `pipeline.io.images`): map_server reads 8-bit values, and the thresholds and raw mode assume them."""
+    from pipeline.io.images import open_image
 
-    with Image.open(path) as im:
-        im.load()
-        alpha = np.asarray(im.getchannel("A"), dtype=np.uint8) if "A" in im.getbands() else None
-        if im.mode in ("I;16", "I;16B", "I", "I;16L"):
-            arr = np.asarray(im, dtype=np.float64)
-            arr = arr * (255.0 / max(arr.max(), 1.0)) if arr.max() > 255 else arr
-            return arr, alpha
-        gray = (
-            np.asarray(im.convert("RGB"), dtype=np.float64).mean(axis=2)
-            if im.mode != "L"
-            else np.asarray(im, dtype=np.float64)
-        )
+    im = open_image(path, rgb=False)
+    alpha = np.asarray(im.getchannel("A"), dtype=np.uint8) if "A" in im.getbands() else None
+    gray = (
+        np.asarray(im.convert("RGB"), dtype=np.float64).mean(axis=2)
+        if im.mode != "L"
+        else np.asarray(im, dtype=np.float64)
+    )
     return gray, alpha
 
 

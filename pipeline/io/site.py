@@ -10,6 +10,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, model_validator
 
 from pipeline.errors import InputError, Problem
+from pipeline.io.text_files import read_text
 
 DEFAULT_CLASSES = ("door", "window", "chair", "fire_extinguisher", "poster", "trash_bin", "plant", "exit_sign")
 
@@ -144,7 +145,7 @@ def read_site(path: Path) -> Site:
             [Problem(str(path), "file is missing", fix="write a site.yaml (see docs/capture-format.md)")],
         )
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.safe_load(read_text(path, what="site description"))
     except yaml.YAMLError as exc:
         raise InputError(f"{path}: not valid YAML", [Problem(str(path), str(exc))]) from None
     try:

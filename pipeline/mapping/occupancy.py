@@ -18,6 +18,9 @@ free space, and clearing along 40 m of it would erase walls seen from elsewhere.
 
 Cells never observed stay unknown (-1); observed cells are occupied if sigmoid(L) > occupied_thresh,
 free if sigmoid(L) < free_thresh, unknown otherwise (the map_server trinary semantics).
+
+A grid larger than MAX_MAP_CELLS (50 M cells, ~1 GB while mapping) is refused with `MapTooLargeError`
+before it is allocated: one corrupt pose far from the rest would otherwise ask for tens of GB.
 """
 
 from __future__ import annotations
@@ -30,6 +33,35 @@ from pipeline.io.map_yaml import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 #: Upper bound on traversed cells held in memory at once (about 16 MB per float64 array), so dense,
 #: long-range scans (csail: 361 beams to 30 m) do not exhaust a small machine's memory.
 MAX_CELLS_PER_BATCH = 2_000_000
+#: Upper bound on a map's cells, checked before the grid is allocated: mapping holds ~20 bytes per cell
+#: (log-odds, probabilities, masks), so this is ~1 GB, e.g. 350 x 350 m at 0.05 m. The real logs need at
+#: most 2.0 M cells (csail, 58 x 87 m); one corrupt pose at x = 1e7 would need 10^11.
+MAX_MAP_CELLS = 50_000_000
+
+
+class MapTooLargeError(ValueError):
+    """The grid that would cover the poses and endpoints exceeds MAX_MAP_CELLS; nothing was allocated."""
+
+    def __init__(self, width_m: float, height_m: float, resolution: float):
+        self.width_m, self.height_m, self.resolution = width_m, height_m, resolution
+        self.cells = (width_m / resolution) * (height_m / resolution)
+        super().__init__(
+            f"the map would be {width_m:.4g} x {height_m:.4g} m = {self.cells:.3g} cells at {resolution:g} m, "
+            f"more than the {MAX_MAP_CELLS:,} cells allowed ({max_side_m(resolution):.4g} x "
+            f"{max_side_m(resolution):.4g} m at {resolution:g} m)"
+        )
+
+
+def max_side_m(resolution: float) -> float:
+    """Side of the largest square map allowed at `resolution` (metres)."""
+    return float(np.sqrt(MAX_MAP_CELLS)) * resolution
+
+
+def check_map_size(width_m: float, height_m: float, resolution: float) -> None:
+    """Raise MapTooLargeError unless a width_m x height_m grid fits in MAX_MAP_CELLS (non-finite never fits)."""
+    cells = (width_m / resolution) * (height_m / resolution)
+    if not np.isfinite(cells) or cells > MAX_MAP_CELLS:
+        raise MapTooLargeError(width_m, height_m, resolution)
 
 
 def valid_returns(ranges: np.ndarray, range_max: float, max_range: float | None = None) -> np.ndarray:
@@ -52,13 +84,16 @@ def beam_endpoints(
 
 
 def _grid_frame(xs: np.ndarray, ys: np.ndarray, cfg: MappingConfig) -> tuple[float, float, int, int]:
-    """(origin_x, origin_y, width, height): the points' bounding box plus the margin, snapped to cells."""
+    """(origin_x, origin_y, width, height): the points' bounding box plus the margin, snapped to cells;
+    MapTooLargeError (before anything is allocated) if that grid exceeds MAX_MAP_CELLS."""
     res = cfg.resolution
-    ox = float(np.floor((xs.min() - cfg.margin_m) / res) * res)
-    oy = float(np.floor((ys.min() - cfg.margin_m) / res) * res)
-    width = int(np.ceil((xs.max() + cfg.margin_m - ox) / res)) + 1
-    height = int(np.ceil((ys.max() + cfg.margin_m - oy) / res)) + 1
-    return round(ox, 9), round(oy, 9), width, height
+    with np.errstate(over="ignore", invalid="ignore"):  # 1e308 - (-1e308) is inf: refused below
+        ox = float(np.floor((xs.min() - cfg.margin_m) / res) * res)
+        oy = float(np.floor((ys.min() - cfg.margin_m) / res) * res)
+        width = float(np.ceil((xs.max() + cfg.margin_m - ox) / res)) + 1
+        height = float(np.ceil((ys.max() + cfg.margin_m - oy) / res)) + 1
+    check_map_size(width * res, height * res, res)
+    return round(ox, 9), round(oy, 9), int(width), int(height)
 
 
 def _inside(frame: tuple[float, float, int, int], res: float, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -192,11 +227,14 @@ def build_occupancy_map(
     ranges = np.asarray(ranges)
     if poses.ndim != 2 or poses.shape[1] != 3 or ranges.ndim != 2 or len(ranges) != len(poses) or len(poses) == 0:
         raise ValueError(f"need poses (N, 3) and ranges (N, B) with N > 0, got {poses.shape} and {ranges.shape}")
+    if not np.isfinite(poses).all():
+        raise ValueError(f"poses must be finite; row {int(np.nonzero(~np.isfinite(poses).all(axis=1))[0][0])} is not")
     valid = valid_returns(ranges, range_max, cfg.max_range_m)
     ex, ey = beam_endpoints(poses, ranges, angle_min, angle_increment)
     if frame is None:
         frame = _grid_frame(np.concatenate([poses[:, 0], ex[valid]]), np.concatenate([poses[:, 1], ey[valid]]), cfg)
     else:
+        check_map_size(frame[2] * cfg.resolution, frame[3] * cfg.resolution, cfg.resolution)
         valid = valid & _inside(frame, cfg.resolution, ex, ey) & _inside(frame, cfg.resolution, poses[:, :1],
                                                                          poses[:, 1:2])
     tracer = _Tracer(frame, cfg)

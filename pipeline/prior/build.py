@@ -31,14 +31,12 @@ def _report(prior, extra: dict) -> str:
 
 def run_prior_build(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path], all_images: bool = False,
                     force: bool = False) -> Path:
-    from pipeline.errors import OutputExistsError
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
     from pipeline.prior.evaluate import build_prior
     from pipeline.prior.features import read_layers, select
 
     out = Path(outputs["out"])
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     meta, raw, rep = read_layers(Path(inputs["features"]))
     keep = np.ones(len(meta["image_id"]), bool) if all_images else np.asarray(meta["split"]) == "train"
     if keep.sum() < 2:
@@ -49,7 +47,7 @@ def run_prior_build(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
     prior = build_prior(cfg, meta, raw, rep["encoder"])
     comps = {n: {"kind": prior.compressors[n].KIND, "dims": int(prior.compressors[n].n_components_),
                  "cap": prior.compressors[n].cap_reason_} for n in prior.layers}
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         prior.save(tmp)
         _write_prior_hashes(tmp, prior, sha)
         write_text_atomic(tmp / "report.json", _report(prior, {
@@ -61,14 +59,12 @@ def run_prior_build(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
 def run_prior_append(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
                      rooms: list[str] | None = None, force: bool = False) -> Path:
     """A copy of `inputs['prior']` with the images of `inputs['features']` (those of `rooms` if given) added."""
-    from pipeline.errors import OutputExistsError
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
     from pipeline.prior.features import read_layers, select
     from pipeline.prior.model import AreaPrior
 
     out = Path(outputs["out"])
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     src = Path(inputs["prior"])
     prior = AreaPrior.load(src)
     meta, raw, rep = read_layers(Path(inputs["features"]))
@@ -92,7 +88,7 @@ def run_prior_append(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: di
                                            "new_classes": len(prior.classes) - before,
                                            "refitted_classes": len([k for k in touched if k < before])}]
     sha = {**_prior_hashes(src, required=False), **_feature_hashes(feats)}
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         prior.save(tmp)
         _write_prior_hashes(tmp, prior, sha)
         extra = {k: doc[k] for k in ("database", "updated") if k in doc}
@@ -149,14 +145,12 @@ def run_prior_update(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: di
 
     An image is the same when its id and sha256 are; the prior's rows of images gone or changed are
     dropped, the new ones compressed with the fitted compressions and added. Nothing else is refitted."""
-    from pipeline.errors import OutputExistsError
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
     from pipeline.prior.features import read_layers, select
     from pipeline.prior.model import AreaPrior
 
     out = Path(outputs["out"])
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     src, feats = Path(inputs["prior"]), Path(inputs["features"])
     prior = AreaPrior.load(src)
     old_sha = _prior_hashes(src)
@@ -180,7 +174,7 @@ def run_prior_update(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: di
     meta, raw = select(meta, raw, np.asarray(add, dtype=np.int64))
     change = prior.replace(keep, meta, raw)
     updated = doc.get("updated", []) + [{"features": str(feats), **change}]
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         prior.save(tmp)
         _write_prior_hashes(tmp, prior, {**old_sha, **new_sha})
         extra = {k: doc[k] for k in ("database", "compression", "appended") if k in doc}

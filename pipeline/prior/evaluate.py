@@ -195,14 +195,12 @@ def write_tracked(out: Path, metrics: dict) -> None:
 
 def run_prior_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
                        force: bool = False, progress: bool = True) -> Path:
-    from pipeline.errors import OutputExistsError
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
     from pipeline.prior.features import read_layers
     from pipeline.prior.report import write_examples, write_figures, write_report
 
     out = Path(outputs["out"])
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     meta, raw, rep = read_layers(Path(inputs["features"]))
     split = np.asarray(meta["split"])
     db, q = np.flatnonzero(split == "train"), np.flatnonzero(split != "train")
@@ -242,7 +240,7 @@ def run_prior_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
 
         metrics["seeding"] = compare_seeding(cfg, prior, Path(inputs["bundle"]), Path(inputs["data"]),
                                              progress=progress)
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         write_text_atomic(tmp / "metrics.json", json.dumps(metrics, indent=2) + "\n")
         write_tracked(tmp, metrics)
         figures = write_figures(tmp, metrics)

@@ -107,14 +107,12 @@ def run_prior_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     vectors as a local run)."""
     from pipeline.descriptors.multilayer import MultiLayerEncoder
     from pipeline.detection.inference import pick_device
-    from pipeline.errors import OutputExistsError
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
     from pipeline.progress import progress_bar
 
     p = cfg.prior
     data, out = Path(inputs["data"]), Path(outputs["out"])
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     cols = labelled_images(data)
     from pipeline.onnx_threads import resolve_engine
 
@@ -144,7 +142,7 @@ def run_prior_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     partial = out.with_name(out.name + ".partial")
     todo_paths = [data / ids[k] for k in todo]
     open_partial(partial, {"stage": "prior-features", "encoder": key, "chunk": p.chunk, "batch": p.batch,
-                           "device": str(enc.device)}, todo_paths)
+                           "device": str(enc.device)}, todo_paths, force=force)
     where = f"{p.backbone} layers ({engine}" + (", ray)" if executor == "ray" else ")")
     bar = progress_bar(total=len(todo), desc=where, unit="image", enabled=progress)
     try:
@@ -155,7 +153,7 @@ def run_prior_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     for name, v in fresh.items():
         for k, row in zip(todo, v, strict=True):
             rows[name][k] = row
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         dims = {}
         write_hashes(tmp, sha, ids)
         for name in enc.layers:

@@ -79,9 +79,8 @@ def write_figures(out: Path, metrics: dict) -> list[str]:
 def write_examples(path: Path, prior, meta_q: dict, probs: np.ndarray, data: Path, n: int = 8, top: int = 5) -> bool:
     """Query images beside their `top` most probable classes (green: the query's own), like the paper's
     Figures 2-5; False when the images are not where the features were computed from."""
-    from PIL import Image
-
     from pipeline.evaluation.plots import save_figure
+    from pipeline.io.images import image_rgb
 
     picks = np.linspace(0, len(meta_q["image_id"]) - 1, min(n, len(meta_q["image_id"]))).astype(int)
     if not all((Path(data) / meta_q["image_id"][i]).is_file() for i in picks):
@@ -95,8 +94,7 @@ def write_examples(path: Path, prior, meta_q: dict, probs: np.ndarray, data: Pat
         ax.axis("off")
     for j, i in enumerate(picks):
         a_img, a_bar = axes[j // cols, 2 * (j % cols)], axes[j // cols, 2 * (j % cols) + 1]
-        with Image.open(Path(data) / meta_q["image_id"][i]) as im:
-            a_img.imshow(np.asarray(im.convert("RGB")))
+        a_img.imshow(image_rgb(Path(data) / meta_q["image_id"][i]))
         truth = (meta_q["room"][i], meta_q["area"][i])
         a_img.set_title(f"{truth[0]}/{truth[1]}", fontsize=8)
         order = np.argsort(-probs[i], kind="stable")[:top][::-1]

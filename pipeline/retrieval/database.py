@@ -34,15 +34,13 @@ class RetrievalDatabase:
 
 def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
                     force: bool = False) -> Path:
-    from pipeline.errors import OutputExistsError
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
     from pipeline.retrieval.evaluate import fit_whitenings, load_extracted, split_database_queries
     from pipeline.retrieval.region_stream import whitened_parts
 
     r = cfg.retrieval
     out = Path(outputs["out"])
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     from pipeline.retrieval.backbones import recorded_backbone
 
     # The regions stay on disk: sampled to fit their whitening, then whitened a batch at a time into the
@@ -55,7 +53,7 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
     ipa = ex.ipa[db] if w_ipa is None else w_ipa.transform(ex.ipa[db])
     keep = np.zeros(len(ex.image_ids), dtype=bool)
     keep[db] = True
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         tables.write_table(tmp / "database_ipa.parquet", tables.to_table(
             "ipa", {"image_id": ids, "descriptor": tables.descriptor_array(ipa)}), "ipa")
         regions = whitened_parts(ex.rpa_path, ex.offsets, keep, (lambda x: x) if w_rpa is None else w_rpa.transform)

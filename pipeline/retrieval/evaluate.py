@@ -173,14 +173,12 @@ def measure(ranked: np.ndarray, query_poses: np.ndarray, db_poses: np.ndarray) -
 
 def run_evaluate_retrieval(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
                            force: bool = False, progress: bool = True) -> Path:
-    from pipeline.errors import OutputExistsError
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
     from pipeline.retrieval.figures import examples_figure, recall_figure
 
     r = cfg.retrieval
     out = Path(outputs["out"])
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     ex = load_extracted(Path(inputs["descriptors"]))
     db, queries = split_database_queries(ex)
     qx, query_root = ex, Path(inputs["data"])
@@ -221,7 +219,7 @@ def run_evaluate_retrieval(cfg: SitelocConfig, *, inputs: dict[str, Path], outpu
                "paper_map_at_4": 0.742}
     whitening = r.whitening if r.whitening not in skipped else "pca"
     best = f"ipa+rpa / {whitening}"
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         write_text_atomic(tmp / "metrics.json", json.dumps(metrics, indent=2) + "\n")
         write_tracked(tmp, metrics, whitening)
         write_text_atomic(tmp / "report.md", report_table(metrics))

@@ -23,9 +23,10 @@ Whitening is not applied here: it is fitted on the database by `siteloc build-in
 extraction serves several whitenings. Images: the mapping stops of `images.parquet` and, with
 `include_runs`, the camera frames of the runs other than mapping runs (the query images). Work goes in chunks to
 `<out>.partial/`; an interrupted extraction resumes from its finished chunks when rerun with the same
-model, site and settings, and refuses (naming what differs) otherwise. With `inputs['reuse']` (an earlier
-extraction), the rows of images whose content and describer are unchanged are copied from it
-(`pipeline.retrieval.reuse`), so an updated site costs only its new images.
+model, site and settings, and refuses (naming what differs) otherwise. Each finished chunk is read in full
+first and a damaged one computed again (`extract_chunks.discard_damaged_chunks`); `force` starts clean.
+With `inputs['reuse']` (an earlier extraction), the rows of images whose content and describer are
+unchanged are copied from it (`pipeline.retrieval.reuse`), so an updated site costs only its new images.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem, SitelocError
 from pipeline.io import tables
 from pipeline.retrieval.descriptors import ImageDescriptors, describe_outputs, ipa_descriptor  # noqa: F401
-from pipeline.retrieval.extract_chunks import ImageRecord, chunk_done, write_chunk
+from pipeline.retrieval.extract_chunks import ImageRecord, chunk_done, discard_damaged_chunks, write_chunk
 
 
 def site_images(ingested: Path, *, include_runs: bool) -> list[ImageRecord]:
@@ -112,15 +113,14 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
                 progress: bool = True, executor: str = "local", ray_address: str | None = None) -> Path:
     """`executor` "ray" describes the chunks on Ray actors (`pipeline.ray_engine`; the same tables as "local")."""
 
+    from pipeline.chunked_encoding import start_partial
     from pipeline.detection.inference import load_detector, load_image
-    from pipeline.errors import OutputExistsError
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
     from pipeline.progress import progress_bar
 
     r = cfg.retrieval
     out, ingested, model_dir = Path(outputs["out"]), Path(inputs["data"]), Path(inputs["model"])
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     images = site_images(ingested, include_runs=r.include_runs)
     missing = [i.image_id for i in images if not (ingested / i.image_id).is_file()]
     if missing:
@@ -146,13 +146,10 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
     sha = image_hashes(ingested, [i.image_id for i in images])
     reuse = ReusedDescriptors(inputs["reuse"], describer) if inputs.get("reuse") else None
     partial = out.with_name(out.name + ".partial")
-    plan = partial / "plan.json"
-    if plan.is_file() and json.loads(plan.read_text()).get("fingerprint") != fingerprint:
-        raise SitelocError(f"{partial}: an interrupted extraction with another model, site or settings is there; "
-                           f"delete it (or rerun that extraction) to start afresh")
-    partial.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(plan, json.dumps({"fingerprint": fingerprint, "images": len(images)}) + "\n")
+    start_partial(partial, fingerprint, len(images), force=force, inputs=inputs.values(),
+                  other="an interrupted extraction with another model, site or settings")
     chunks = [images[i:i + r.chunk] for i in range(0, len(images), r.chunk)]
+    discard_damaged_chunks(partial, chunks)
     pool = None
     if engine == "onnx":
         from pipeline.onnx_threads import thread_layout
@@ -214,7 +211,7 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
         if int(dim) != record["dim"]:
             raise SitelocError(f"{r.backbone}: descriptors of {dim} values, its record says {record['dim']}")
         meta["retrieval_backbone"] = json.dumps(record)
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         rows = {kind: tables.write_table_parts(tmp / f"{kind}.parquet", parts(kind), kind, meta)
                 for kind in ("ipa", "rpa")}
         _write_catalog(tmp / "catalog.parquet", images)

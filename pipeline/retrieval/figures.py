@@ -44,9 +44,9 @@ def examples_figure(path: Path, database: tuple, query: tuple, ranked: np.ndarra
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from PIL import Image
 
     from pipeline.evaluation.plots import save_figure
+    from pipeline.io.images import open_image
     from pipeline.retrieval.metrics import positives
 
     db_root, ex, db = database
@@ -62,8 +62,7 @@ def examples_figure(path: Path, database: tuple, query: tuple, ranked: np.ndarra
             ax.set_xticks([])
             ax.set_yticks([])
             if (root / source.image_ids[i]).is_file():
-                with Image.open(root / source.image_ids[i]) as im:
-                    ax.imshow(im.convert("RGB"))
+                ax.imshow(open_image(root / source.image_ids[i]))
             x, y, th = source.poses[i]
             ax.set_title(f"{label}  ({x:.1f}, {y:.1f}, {np.degrees(th):.0f} deg)", fontsize=7)
             colour = "black" if ok is None else ("#2a9d8f" if ok else "#e63946")

@@ -136,8 +136,7 @@ def run_train_place(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
     import torch
 
     from pipeline.detection.inference import pick_device
-    from pipeline.errors import OutputExistsError
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
     from pipeline.io.checkpoint import resume_state
     from pipeline.io.checkpoint import save_checkpoint as save_state
     from pipeline.progress import progress_bar
@@ -146,8 +145,7 @@ def run_train_place(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
 
     c = cfg.place
     out = Path(outputs["out"])
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     data = Path(inputs["data"])
     ims = place_images(data, frame_stride=c.frame_stride, validation_run=c.validation_run)
     train = np.flatnonzero(~ims.validation)
@@ -247,7 +245,7 @@ def run_train_place(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
                "descriptor_dim": int(bb.dim), "device": str(device), "trunk_weights": trunk.source,
                "cache_seconds": round(cache_s, 1), "train_seconds": round(train_s, 1),
                "kept_epoch": kept["epoch"], "history": history}
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         save_checkpoint(bb, tmp / "place.safetensors")
         write_text_atomic(tmp / "metrics.json", json.dumps(metrics, indent=2) + "\n")
         training_figure(tmp / "training.png", history, kept["epoch"])

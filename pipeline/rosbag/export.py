@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.config import OdometryNoise, SitelocConfig, write_effective_config
-from pipeline.io.atomic import atomic_dir, write_text_atomic
+from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
 from pipeline.rosbag.bagfile import BagWriter
 from pipeline.rosbag.messages import CAMERA_INFO, COMPRESSED, GRID, ODOMETRY, SCAN, TF, yaw_quat
 from pipeline.rosbag.transforms import compose2d, inverse2d
@@ -236,10 +236,11 @@ def run_export_bag(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict
     from pipeline.ingest import validate_site_dir
     from pipeline.progress import progress_bar
 
-    v = validate_site_dir(inputs["site"], cfg.ingest, progress=progress)
     out = Path(outputs["out"])
+    check_output(out, force=force, inputs=inputs.values())
+    v = validate_site_dir(inputs["site"], cfg.ingest, progress=progress)
     report: dict = {"site": v.site.name, "format": fmt, "bags": {}}
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         jobs = [("capture", None)] + [(run.name, run) for run in v.runs]
         for i, (name, run) in enumerate(progress_bar(jobs, desc="writing bags", unit="bag", enabled=progress)):
             path = bag_path(tmp, name, fmt)

@@ -23,7 +23,7 @@ import numpy as np
 
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem
-from pipeline.io.atomic import atomic_dir, write_bytes_atomic, write_text_atomic
+from pipeline.io.atomic import atomic_dir, check_output, write_bytes_atomic, write_text_atomic
 from pipeline.io.capture_runs import write_run
 from pipeline.rosbag.read import Recording, load_frames, read_recording
 from pipeline.rosbag.stops import stops_every, turning_stops
@@ -373,6 +373,7 @@ def run_ingest_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Path]
 
     opts = options or BagOptions()
     out = Path(outputs["out"])
+    check_output(out, force=force, inputs=inputs.values())
     ann_path = inputs.get("annotations")
     if ann_path is not None and not Path(ann_path).is_file():
         raise InputError(f"{ann_path}: annotations not found", [Problem(
@@ -406,7 +407,7 @@ def run_ingest_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Path]
         needs.append(f"--set ingest.position_tolerance_m={math.ceil(spread * 100) / 100 + 0.01:.2f}")
     if head > cfg.ingest.heading_tolerance_deg:
         needs.append(f"--set ingest.heading_tolerance_deg={math.ceil(head) + 1}")
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         write_site(tmp / "site.yaml", site.model_copy(update={"classes": DEFAULT_CLASSES}))
         write_map(tmp / "map.yaml", occ)
         stops = _write_captures(tmp, drives, site)

@@ -86,8 +86,11 @@ def choose_topics(path: Path, connections, roles: dict[str, str]) -> dict[str, s
 
 def _image_bytes(path: Path, topic: str, index: int, msg, typename: str,
                  encode: bool = True) -> tuple[bytes | None, str, tuple[int, int]]:
-    """(file bytes or None without `encode`, jpeg|png, (width, height)) of an image message, checked."""
+    """(file bytes or None without `encode`, jpeg|png, (width, height)) of an image message, checked: the
+    header of every message, and with `encode` (the frames kept) the whole image, which finds truncation."""
     from PIL import Image
+
+    from pipeline.io.images import ImageError, image_size, open_image
 
     if typename == COMPRESSED:
         data = bytes(msg.data)
@@ -96,12 +99,11 @@ def _image_bytes(path: Path, topic: str, index: int, msg, typename: str,
             _fail(path, topic, f"compressed image data is neither JPEG nor PNG (format '{msg.format}', first bytes "
                   f"{data[:8].hex()})", f"siteloc reads {', '.join(ENCODINGS)} (re-encode, e.g. with image_transport "
                   "republish)", index)
-        try:  # the header only: cheap
-            with Image.open(io.BytesIO(data)) as im:
-                size = im.size
-        except Exception as exc:  # PIL raises UnidentifiedImageError, SyntaxError, OSError for damaged data
-            _fail(path, topic, f"{fmt.upper()} image data cannot be decoded ({type(exc).__name__})",
-                  "the message is damaged; re-record it", index)
+        try:
+            size = open_image(data, rgb=False).size if encode else image_size(data)
+        except ImageError as exc:
+            _fail(path, topic, f"{fmt.upper()} image data cannot be decoded: {exc.message}",
+                  "re-record it, or republish the images as 8-bit JPEG or PNG", index)
         return (data if encode else None), fmt, size
     enc = msg.encoding.lower()
     if enc not in ("rgb8", "bgr8", "mono8"):

@@ -26,6 +26,7 @@ from enum import StrEnum
 import numpy as np
 
 from pipeline.io.odometry import noise_alphas
+from pipeline.runtime import inputs
 from pipeline.runtime.estimate import PoseEstimate, estimate_pose, mode_near_best
 from pipeline.runtime.grid import LaserMap
 from pipeline.runtime.motion import odometry_delta, sample_motion_model_odometry, wrap_angle
@@ -102,14 +103,19 @@ class AdaptiveMCL:
         self._reset(self.map.sample_free(n or self.max_particles, self.rng), FilterState.RELOCALISING)
 
     def init_pose(self, pose, std_xy: float | None = None, std_theta: float | None = None,
-                  n: int | None = None) -> None:
-        """Tracking from a known pose: a Gaussian around it."""
+                  n: int | None = None, *, check: bool = True) -> None:
+        """Tracking from a known pose: a Gaussian around it. The pose must lie in the map's free space
+        (`inputs.pose`: a RuntimeInputError otherwise). `check=False` is the camera path's: a pose its scan
+        check chose, which off the map or in unknown space starts the filter relocalising, not tracking."""
         c = self.cfg
-        parts = self.map.sample_around(np.asarray(pose, dtype=np.float64)[None], np.ones(1), n or self.max_particles,
+        pose = inputs.pose(pose, self.map) if check else np.asarray(pose, dtype=np.float64).reshape(3)
+        parts = self.map.sample_around(pose[None], np.ones(1), n or self.max_particles,
                                        std_xy or c.init_std_xy, std_theta or math.radians(c.init_std_theta_deg),
                                        self.rng)
-        self._reset(parts, FilterState.TRACKING)
-        self._tracked = self.cfg.kidnap.trust_updates  # a pose the caller knows is trusted from the start
+        trusted = check or self.map.known(pose[0], pose[1])
+        self._reset(parts, FilterState.TRACKING if trusted else FilterState.RELOCALISING)
+        if trusted:
+            self._tracked = self.cfg.kidnap.trust_updates  # a pose the caller knows is trusted from the start
 
     def init_candidates(self, poses, weights=None, n: int | None = None, std_theta=None) -> None:
         """Weighted candidate poses (image retrieval's Top-K, weighted 4:3:2:1 by the camera path; equal weights
@@ -320,8 +326,10 @@ class AdaptiveMCL:
         tight = est.cluster_weight >= k.converged_share and est.std_xy <= k.converged_std_m
         # Lost: the scan has disagreed with the best particle for several updates while the belief is
         # committed (tracking, or collapsed onto one wrong cluster during a search). A spread belief that
-        # fits badly is still searching and is left to the random particles.
-        if self._low_updates >= k.updates and (self.state == FilterState.TRACKING or tight):
+        # fits badly is still searching and is left to the random particles. A tracked belief that odometry
+        # took off the map or into unknown space is lost at once: no robot is there, whatever the scan says.
+        astray = self.state == FilterState.TRACKING and not self.map.known(est.pose[0], est.pose[1])
+        if astray or (self._low_updates >= k.updates and (self.state == FilterState.TRACKING or tight)):
             self.state = FilterState.LOST
             self._good_updates = 0
             self._low_updates = 0
@@ -335,7 +343,8 @@ class AdaptiveMCL:
         if self.state != FilterState.TRACKING:
             if not self._judged:  # no evidence either way (kidnap.min_beams)
                 return
-            good = tight and self._best >= k.min_likelihood and self._low_updates == 0
+            good = (tight and self._best >= k.min_likelihood and self._low_updates == 0
+                    and self.map.known(est.pose[0], est.pose[1]))
             # One tight update can be a wrong mode that happened to fit; several in a row rarely are.
             self._good_updates = self._good_updates + 1 if good else 0
             if self._good_updates >= k.updates:

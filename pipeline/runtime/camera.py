@@ -215,6 +215,6 @@ class CameraPath:
                                     threshold=cam.settled_threshold if settled else cam.threshold, rng=self._rng)
         if won is None:
             return None
-        self.filter.init_pose(won)
+        self.filter.init_pose(won, check=False)  # the scan chose it; off the map it only relocalises
         self.awaiting_sequence = False  # the evidence is the confirmation the sequence was waiting for
         return won

@@ -21,12 +21,12 @@ OUTPUTS = ("feature_map", "proposals", "proposal_scores", "boxes", "scores", "la
 
 
 def image_array(image) -> np.ndarray:
-    """(3, H, W) float32 in [0, 1] from a path, an (H, W, 3) uint8 RGB array or a (3, H, W) float array."""
+    """(3, H, W) float32 in [0, 1] from a path, an (H, W, 3) uint8 RGB array or a (3, H, W) float array. A file
+    that cannot be decoded faithfully is refused by `pipeline.io.images` with an InputError naming it."""
     if isinstance(image, (str, Path)):
-        from PIL import Image
+        from pipeline.io.images import image_rgb
 
-        with Image.open(image) as im:
-            image = np.asarray(im.convert("RGB"))
+        image = image_rgb(image)
     a = np.asarray(image)
     if a.ndim == 3 and a.shape[-1] == 3 and a.dtype == np.uint8:
         return np.ascontiguousarray(a.transpose(2, 0, 1), dtype=np.float32) / 255.0

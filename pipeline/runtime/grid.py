@@ -12,6 +12,7 @@ Unknown cells count as not free (no particle is born there) and not occupied (no
 from __future__ import annotations
 
 import hashlib
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,6 +72,20 @@ class LaserMap:
     def cells(self, x, y) -> tuple[np.ndarray, np.ndarray]:
         """(row, col) of map-frame points, possibly outside the grid."""
         return self.source.world_to_cell(x, y)
+
+    def cell_of(self, x: float, y: float) -> tuple[int, int] | None:
+        """(row, col) of one map-frame point, or None off the grid (or not finite); as `cells` rounds it."""
+        if not (math.isfinite(x) and math.isfinite(y)):
+            return None
+        col = math.floor((x - self.origin_x) / self.resolution)
+        row = math.floor((y - self.origin_y) / self.resolution)
+        return (row, col) if 0 <= row < self.height and 0 <= col < self.width else None
+
+    def known(self, x: float, y: float) -> bool:
+        """Whether one map-frame point lies on the grid in a cell the map knows (free, occupied or between):
+        nowhere else can a robot be, so a belief elsewhere is wrong (`AdaptiveMCL` never tracks there)."""
+        cell = self.cell_of(x, y)
+        return cell is not None and bool(self.source.grid[cell] >= 0)
 
     def is_free(self, x, y) -> np.ndarray:
         return self.source.value_at(x, y) == FREE

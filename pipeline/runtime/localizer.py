@@ -18,7 +18,9 @@ import numpy as np
 import yaml
 from pydantic import ValidationError
 
+from pipeline.errors import excerpt
 from pipeline.retrieval.search import weighted_candidates
+from pipeline.runtime import inputs
 from pipeline.runtime.bundle import BundleError, open_bundle
 
 
@@ -65,6 +67,15 @@ class Localizer:
         las = settings["laser"]
         self.laser = LaserGeometry(las["angle_min"], las["angle_increment"], las["range_max"],
                                    tuple(las["base_from_laser"]))
+        # Scans given as ranges must have the laser's beam count: the bundle's when filter.yaml records it,
+        # else the first scan's (`scan`).
+        self.beams: int | None = las.get("beams")
+        if self.beams is not None and (isinstance(self.beams, bool) or not isinstance(self.beams, int)
+                                       or self.beams < 1):
+            raise BundleError(f"{root / 'filter.yaml'}, section laser: beams is {excerpt(self.beams)}, not a "
+                              f"positive integer; export the bundle again")
+        self._beams_from = ("the bundle's laser" if self.beams is not None
+                            else "the first scan's; this bundle's filter.yaml has no laser.beams")
         self.occupancy = read_map(root / "map" / "map.yaml")
         self.map = LaserMap.from_occupancy(self.occupancy, fcfg.sensor.max_distance)
         self.filter_config = fcfg
@@ -106,6 +117,7 @@ class Localizer:
 
         if seed is not None:
             self.filter_config = self.filter_config.model_copy(update={"seed": seed})
+        self._odometry = None  # the last reading accepted: the next one's step is bounded from it
         filt = AdaptiveMCL(self.map, self.filter_config, range_max=self.laser.range_max,
                            base_from_laser=self.laser.base_from_laser)
         if self.camera is None:
@@ -158,7 +170,7 @@ class Localizer:
         describing frames side by side each use their own)."""
         from pipeline.retrieval.database import query_database
 
-        d = (describer or self.describer).describe(image)
+        d = (describer or self.describer).describe(inputs.image(image))
         r = self.retrieval
         regions = d.rpa[d.query_rows(r["query_regions"])]
         found = query_database(self.database, d.ipa, regions, top_n=r["top_n"],
@@ -185,21 +197,37 @@ class Localizer:
     def proposals(self, sources: tuple[str, ...], image, scan) -> tuple[np.ndarray, np.ndarray]:
         """Where particles would go now (`CameraPath.proposals`): (K, 4) x, y, theta, weight and (K,)
         heading spreads, from the image's ("image") or the buffered frames' ("sequence") ranked poses."""
-        return self.camera.proposals(sources, image, scan)
+        return self.camera.proposals(sources, inputs.image(image), self._checked_scan(scan))
 
     def scan(self, ranges) -> object:
+        """A `Scan` of ranges (m) in the bundle's laser geometry: 1-D, the laser's beam count, none negative
+        (+inf: no return; NaN: invalid); a RuntimeInputError otherwise (docs/runtime.md, "Inputs")."""
         from pipeline.runtime.sensor import Scan
 
-        return Scan(np.asarray(ranges, dtype=np.float64), self.laser.angle_min, self.laser.angle_increment,
-                    self.laser.range_max)
+        r = inputs.ranges(ranges, self.beams, self.laser.angle_increment, beams_from=self._beams_from)
+        if self.beams is None:
+            self.beams = len(r)
+        return Scan(r, self.laser.angle_min, self.laser.angle_increment, self.laser.range_max)
+
+    def _checked_scan(self, scan):
+        """`scan` checked: None, a `Scan` (its own geometry) or ranges (`scan`)."""
+        from pipeline.runtime.sensor import Scan
+
+        if scan is None:
+            return None
+        if isinstance(scan, Scan):
+            inputs.scan_geometry(scan)
+            return scan
+        return self.scan(scan)
 
     def update(self, odometry, scan, image=None) -> Estimate:
         """One step: odometry (x, y, theta in the odometry frame), a scan (a `Scan`, or ranges in the
-        bundle's laser geometry, or None) and optionally the camera image at this step."""
-        from pipeline.runtime.sensor import Scan
-
-        if scan is not None and not isinstance(scan, Scan):
-            scan = self.scan(scan)
+        bundle's laser geometry, or None) and optionally the camera image at this step. Each is checked
+        first (`inputs`): a bad one raises RuntimeInputError and leaves the filter as it was."""
+        odometry = inputs.odometry(odometry, self._odometry)
+        image = inputs.image(image)
+        scan = self._checked_scan(scan)  # last: the first scan a bundle without laser.beams sees sets the count
+        self._odometry = odometry
         step = self.camera.step(odometry, scan, image)
         res = step.result
         return Estimate(res.pose, res.covariance, res.state.value, res.particles, res.updated, step.candidates,

@@ -28,15 +28,13 @@ def _encoder_of(meta: dict) -> tuple:
 def run_sequence_database(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
                           force: bool = False) -> Path:
     """`outputs['out']`: the model of `inputs['model']` with a database of `inputs['frames']`' mapping runs."""
-    from pipeline.errors import OutputExistsError
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
     from pipeline.retrieval.whitening import PCAWhitening
     from pipeline.sequence import train as T
     from pipeline.sequence.onnx_export import load_sequence_model
 
     out, model_dir = Path(outputs["out"]), Path(inputs["model"])
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     missing = [f for f in MODEL_FILES if not (model_dir / f).is_file()]
     if missing:
         raise InputError(f"{model_dir}: not a `siteloc train-sequence` output", [Problem(
@@ -68,7 +66,7 @@ def run_sequence_database(cfg: SitelocConfig, *, inputs: dict[str, Path], output
                "dims_cap": str(whitening.cap_reason_), "query_runs": queries,
                "recall": T.evaluate_lengths(model, whitening, db, frames, windows, queries,
                                             T.kidnap_breaks(inputs.get("data"), frames))}
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         for f in ("weights.safetensors", "whitening.npz"):
             shutil.copyfile(model_dir / f, tmp / f)
         write_text_atomic(tmp / "config.json", json.dumps({**seq_cfg, "frames": str(frames_path),

@@ -74,13 +74,11 @@ def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
                        force: bool = False, progress: bool = True, executor: str = "local",
                        ray_address: str | None = None) -> Path:
     """`executor` "ray" encodes the chunks on Ray actors (`pipeline.chunked_encoding`; the same table)."""
-    from pipeline.errors import OutputExistsError
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
 
     s = cfg.sequence
     data, out = Path(inputs["data"]), Path(outputs["out"])
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     frames = run_frames(data)
     if not frames:
         raise InputError(f"{data}: no run has camera frames", [Problem(
@@ -116,7 +114,8 @@ def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
 
     partial = out.with_name(out.name + ".partial")
     todo_paths = [data / ids[k] for k in todo]
-    open_partial(partial, {"stage": "frame-features", "encoder": key, "chunk": s.chunk, "batch": s.batch}, todo_paths)
+    open_partial(partial, {"stage": "frame-features", "encoder": key, "chunk": s.chunk, "batch": s.batch}, todo_paths,
+                 force=force)
     if todo:
         fresh, graphs = _encode_frames(enc, engine, todo_paths, s.batch, cfg.export.parity_images, progress, partial,
                                        s.chunk, executor, ray_address)
@@ -126,7 +125,7 @@ def run_frame_features(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     cols = {"run": [f[0] for f in frames], "step": [f[1] for f in frames], "image_id": [f[2] for f in frames],
             "gt_x": [f[3][0] for f in frames], "gt_y": [f[3][1] for f in frames], "gt_theta": [f[3][2] for f in frames],
             "descriptor": tables.descriptor_array(matrix)}
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         tables.write_table(tmp / "frames.parquet", tables.to_table("frames", cols), "frames",
                            metadata={"encoder": "efficientnet_lite0", "weights": enc.source,
                                      "frame_size": str(s.frame_size)})

@@ -100,8 +100,7 @@ def run_train_sequence(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
     import torch
     from safetensors.torch import save_file
 
-    from pipeline.errors import OutputExistsError
-    from pipeline.io.atomic import atomic_dir, write_text_atomic
+    from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
     from pipeline.io.checkpoint import resume_state, save_checkpoint
     from pipeline.progress import progress_bar
     from pipeline.retrieval.whitening import PCAWhitening
@@ -109,8 +108,7 @@ def run_train_sequence(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
 
     s = cfg.sequence
     out = Path(outputs["out"])
-    if out.exists() and not force:
-        raise OutputExistsError(out)
+    check_output(out, force=force, inputs=inputs.values())
     frames_path = Path(inputs["frames"]) / "frames.parquet"
     frames = Frames(frames_path)
     mapping = sorted(r for r in set(frames.run) if r.startswith("mapping"))
@@ -169,7 +167,7 @@ def run_train_sequence(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: 
                "query_runs": queries,
                "recall": evaluate_lengths(model, whitening, db, frames, train, queries,
                                           kidnap_breaks(inputs.get("data"), frames))}
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         save_file({k: v.detach().contiguous() for k, v in model.state_dict().items()}, str(tmp / "weights.safetensors"))
         write_text_atomic(tmp / "config.json", json.dumps({
             "builder": {"in_dim": int(frames.features.shape[1]), "hidden": s.hidden, "num_places": len(places)},

@@ -113,7 +113,7 @@ def _jar_members(names: list[str]) -> list[str]:
 
 def extract_jar(jar: Path, dest: Path, provenance: dict) -> int:
     """Copy the useful members of `jar` into a fresh `dest` (atomically) with SOURCE.json; returns the count."""
-    with zipfile.ZipFile(jar) as zf, atomic_dir(dest, force=True) as tmp:
+    with zipfile.ZipFile(jar) as zf, atomic_dir(dest, force=True, inputs=(jar,)) as tmp:
         members = _jar_members(zf.namelist())
         for name in members:
             target = tmp / name

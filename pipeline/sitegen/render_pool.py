@@ -3,7 +3,8 @@
 llvmpipe splits a frame into tiles over its threads, but the office floor's frames are small and most of a
 frame's cost is serial (vertex processing, triangle setup, readback): on 2 cores, one context with 2 threads
 renders 13.0 images/s against 11.6 with 1 thread, while two processes with 1 thread each render 16.6
-(`benchmarks/render_benchmark.py --processes`). So `synth` renders through `RenderPool`: each worker
+(`benchmarks/render_benchmark.py --processes`). So `synth` renders through `RenderPool`: each worker dies with
+the parent (`pipeline.workers.die_with_parent`: `kill -9` of `synth` leaves no renderer behind),
 rebuilds the scene from the preset and seed (the same scene: generation is seeded), uploads it, and takes
 batches of views: it renders each, applies the camera effects (`camera.effects`, `camera_effects`), writes the
 image and, for capture views, returns the COCO boxes read from the (distorted) instance buffer. The parent
@@ -180,6 +181,14 @@ def _start_worker(preset_json: dict, seed: int, change: bool | ChangeSpec, allow
                                             change_areas=change_areas)
 
 
+def _start_pool_worker(parent_pid: int, *args) -> None:
+    """The process pool's initializer: tie the worker's life to the parent's, then `_start_worker`."""
+    from pipeline.workers import die_with_parent
+
+    die_with_parent(parent_pid)
+    _start_worker(*args)
+
+
 class RenderActor:
     """A Ray actor holding one render context (the `_start_worker` of a Ray worker)."""
 
@@ -267,12 +276,14 @@ class RenderPool:
             raise ValueError(f"engine must be local or ray, got '{engine}'")
         elif self.workers > 1:
             import multiprocessing
+            import os
             from concurrent.futures import ProcessPoolExecutor
 
             _require_egl()
             self._pool = ProcessPoolExecutor(
-                self.workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
-                initargs=(preset.model_dump(mode="json"), seed, change, allow_fallback, str(root), tuple(change_areas)))
+                self.workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_pool_worker,
+                initargs=(os.getpid(), preset.model_dump(mode="json"), seed, change, allow_fallback, str(root),
+                          tuple(change_areas)))
         else:
             self.ctx, self._renderer = open_render_context(preset, seed, change, allow_fallback, Path(root), scene,
                                                            library)

@@ -156,7 +156,7 @@ def run_synth(preset: SitePreset, *, outputs: dict[str, Path], seed: int = 0, ch
     workers = default_workers() if workers is None else max(1, int(workers))
     suffix = image_suffix(preset)
     stats = {"images": 0, "render_s": 0.0, "effects_s": 0.0, "workers": workers}
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=()) as tmp:  # generated from the preset: no input to protect
         with RenderPool(preset, seed, scene_change, allow_fallback, tmp, workers=workers, scene=scene,
                         library=library, change_areas=change_areas, engine=executor,
                         ray_address=ray_address) as pool:
@@ -408,6 +408,8 @@ def write_contact_sheet(path: Path, root: Path, images: list[dict], anns: list[d
     """A grid of sample views with their boxes and class names drawn, to judge realism at a glance."""
     from PIL import Image, ImageDraw
 
+    from pipeline.io.images import open_image
+
     palette = [(230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48), (145, 30, 180),
                (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 190)]
     by_image: dict[int, list[dict]] = {}
@@ -419,8 +421,7 @@ def write_contact_sheet(path: Path, root: Path, images: list[dict], anns: list[d
     chosen = [pool[i] for i in sorted(rng.choice(len(pool), size=min(n, len(pool)), replace=False))]
     tiles = []
     for im in chosen:
-        with Image.open(root / im["file_name"]) as src:
-            tile = src.convert("RGB")
+        tile = open_image(root / im["file_name"])
         scale = thumb_w / tile.width
         tile = tile.resize((thumb_w, round(tile.height * scale)))
         draw = ImageDraw.Draw(tile)

@@ -68,7 +68,7 @@ def run_synth_laser(preset: CampusPreset, *, outputs: dict, force: bool = False,
     geometry = (scanner.angle_min, scanner.angle_increment, lz.range_max)
     report = _report(preset, campus, gt, odom, ranges, [
         endpoint_occupied_share(campus.map, gt, ranges, *geometry, tol) for tol in (0, 1)])
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=()) as tmp:  # generated from the preset: no input to protect
         (tmp / "runs").mkdir()
         write_table(tmp / "runs" / f"{preset.name}.parquet", to_table("runs", columns), "runs",
                     metadata={"odometry": "synthesised", "odometry_noise": noise_json(preset.odometry_noise),

@@ -20,7 +20,7 @@ import pyarrow.compute as pc
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problems
 from pipeline.io import tables
-from pipeline.io.atomic import atomic_dir, write_text_atomic
+from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
 from pipeline.io.map_yaml import OccupancyMap, read_map, write_map
 from pipeline.io.site import Site, read_site, write_site
 from pipeline.runtime.bundle import sha256_of
@@ -173,6 +173,8 @@ def run_update(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
     from pipeline.io.map_yaml import OCCUPIED
     from pipeline.update.map_patch import patch_figure, patch_map
 
+    out = Path(outputs["out"])
+    check_output(out, force=force, inputs=inputs.values())
     old, new = read_site_db(inputs["site_db"]), read_site_db(inputs["new_data"])
     plan = plan_update(old, new, remove_stops=list(remove_stops or []), remove_runs=list(remove_runs or []),
                        proximity_m=cfg.update.proximity_m, allow_new_areas=allow_new_areas)
@@ -235,8 +237,7 @@ def run_update(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
                    "images_kept": kept_images.num_rows, "images_added": new_images.num_rows,
                    "images": images.num_rows},
     }
-    out = Path(outputs["out"])
-    with atomic_dir(out, force=force) as tmp:
+    with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         link = cfg.ingest.link_images
         _link_all(_image_ids(kept_images, kept_runs), old.root, tmp, link)
         _link_all(_image_ids(new.images, new.runs), new.root, tmp, link)

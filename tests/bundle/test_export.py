@@ -171,6 +171,74 @@ def test_cli_exports_and_localizes_with_the_bundle(exported, tmp_path):
     assert res.exit_code == 1 and "--bundle" in res.output
 
 
+def _export_argv(exported, out: Path, *extra: str) -> list[str]:
+    from tests.conftest import MICRO_SETS
+
+    _, ing, model, index, _ = exported
+    return ["export", str(model), str(index), str(ing), "--out", str(out), "--config", "ci",
+            *[a for s in MICRO_SETS for a in ("--set", s)], *extra]
+
+
+def test_export_rebuilds_the_missing_archive_of_an_existing_bundle_then_says_exists(exported, tmp_path):
+    """A bundle directory without its archive (an export interrupted by an older siteloc) is completed from
+    the verified directory, not left as is under "exists"; once complete, "exists" as before."""
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from pipeline.bundle.export import archive_matches, archive_of
+    from pipeline.runtime.bundle import read_manifest
+    from stages.app import app
+
+    bundle = exported[4]
+    copy = tmp_path / "b" / bundle.name
+    shutil.copytree(bundle, copy)
+    runner = CliRunner()
+    res = runner.invoke(app, _export_argv(exported, tmp_path / "b"))
+    assert res.exit_code == 0, res.output
+    assert "without a matching" in res.output and "archive was rebuilt from the verified directory" in res.output
+    assert archive_matches(archive_of(copy), copy, read_manifest(copy))
+    assert sorted(p.name for p in copy.parent.iterdir()) == [copy.name, archive_of(copy).name]
+    res = runner.invoke(app, _export_argv(exported, tmp_path / "b"))
+    assert res.exit_code == 1 and "exists" in res.output, res.output
+
+
+KILLED_IN_ARCHIVE = """
+import os, signal, sys, tarfile
+add = tarfile.TarFile.addfile
+def dying(self, tarinfo, fileobj=None, *args, **kw):
+    add(self, tarinfo, fileobj, *args, **kw)
+    if tarinfo.isfile():
+        os.kill(os.getpid(), signal.SIGKILL)
+tarfile.TarFile.addfile = dying
+from stages.app import app
+app(sys.argv[1:])
+"""
+
+
+@pytest.mark.slow
+def test_siteloc_export_killed_while_writing_its_archive_publishes_nothing_and_a_rerun_completes(exported, tmp_path):
+    """SIGKILL inside the archive writing (after its first file): no bundle directory without its archive;
+    the rerun completes and leaves no temporary behind."""
+    from typer.testing import CliRunner
+
+    from pipeline.bundle.export import archive_matches, archive_of
+    from pipeline.runtime.bundle import read_manifest
+    from stages.app import app
+
+    argv = _export_argv(exported, tmp_path / "b", "--version", "3.0")
+    killed = subprocess.run([sys.executable, "-c", KILLED_IN_ARCHIVE, *argv], cwd=REPO, capture_output=True,
+                            text=True)
+    assert killed.returncode == -9, killed.stderr[-2000:]
+    left = sorted(p.name for p in (tmp_path / "b").iterdir())
+    assert all(n.startswith(".") for n in left) and any(n.endswith(".tmp-write") for n in left), left
+    res = CliRunner().invoke(app, argv)
+    assert res.exit_code == 0, res.output
+    out = next((tmp_path / "b").glob("*-3.0"))
+    assert sorted(p.name for p in out.parent.iterdir()) == [out.name, archive_of(out).name]
+    assert archive_matches(archive_of(out), out, read_manifest(out))
+
+
 @pytest.mark.parametrize("while_relocalising", [False, True])
 def test_candidates_are_injected_when_lost_or_through_relocalisation(exported, while_relocalising):
     from pipeline.evaluation.replay import load_run

@@ -120,7 +120,9 @@ def test_cli_trains_and_refuses_what_is_not_a_site(site, tmp_path):
     assert res.exit_code == 0, res.output
     assert "trained efficientnet_lite0 (none (random init))" in res.output
     assert (tmp_path / "m" / "weights.safetensors").is_file()
-    res = runner.invoke(app, ["train-detector", str(tmp_path), "--out", str(tmp_path / "n"), "--config", "ci"])
+    (tmp_path / "not-a-site").mkdir()
+    res = runner.invoke(app, ["train-detector", str(tmp_path / "not-a-site"), "--out", str(tmp_path / "n"),
+                              "--config", "ci"])
     assert res.exit_code == 1 and "images.parquet" in res.output and "Traceback" not in res.output
 
 

@@ -89,7 +89,8 @@ def test_non_increasing_timestamps_fall_back_to_step_index(tmp_path):
         ("FLASER 3 1.0 2.0 0 0 0 0 0 0 1.0 host 1.0", "need 14 fields"),
         ("FLASER 3 1.0 abc 3.0 0 0 0 0 0 0 1.0 host 1.0", "'abc' is not a number"),
         ("FLASER 2 1.0 2.0 0 0 0 0 0 0 1.0 host 1.0", "beam count must not change"),
-        ("FLASER 3 1.0 2.0 3.0 nan 0 0 0 0 0 1.0 host 1.0", "not finite"),
+        ("FLASER 3 1.0 2.0 3.0 nan 0 0 0 0 0 1.0 host 1.0", "pose (nan, 0, 0) is not finite"),
+        ("FLASER 3 1.0 2.0 3.0 0 inf 0 0 0 0 1.0 host 1.0", "pose (0, inf, 0) is not finite"),
         ("FLASER 3 1.0 -2.0 3.0 0 0 0 0 0 0 1.0 host 1.0", "negative range"),
         ("FLASER x 1.0 2.0 3.0 0 0 0 0 0 0 1.0 host 1.0", "not an integer"),
         ("1.0 2.0 3.0", "not a CARMEN message name"),
@@ -180,3 +181,25 @@ def test_many_bad_lines_are_counted_but_listed_only_up_to_a_cap(tmp_path):
     assert len(info.value.problems) == MAX_LISTED
     log = read_carmen(path, skip_bad_lines=True)
     assert log.skipped_lines == 300 and len(log.skipped) == MAX_LISTED and log.n_scans == 1
+
+
+@pytest.mark.parametrize(
+    ("bad", "quoted"),
+    [
+        ("\x1b[31mRED\x1b[0m 1 2", "'\\x1b[31mRED\\x1b[0m' is not a CARMEN message name"),
+        ("FLASER \x1b]0;title\x07 1 2", "beam count '\\x1b]0;title\\x07' is not an integer"),
+        ("FLASER 3 1.0 \x1b[2J 3.0 0 0 0 0 0 0 1.0 host 1.0", "range: '\\x1b[2J' is not a number"),
+        ("G" * 10_000_000, "... (10000000 characters)' is not a CARMEN message name"),
+        ("FLASER " + "9" * 100 + "x", "... (101 characters)' is not an integer"),
+    ],
+    ids=["escape-name", "escape-count", "escape-range", "10MB-token", "long-count"],
+)
+def test_bad_input_is_quoted_short_and_escaped(tmp_path, bad, quoted):
+    """Escape bytes of a log never reach the terminal and a 10 MB garbage line is not echoed whole."""
+    good = flaser_line([1.0, 2.0, 3.0], (0, 0, 0), 1.0)
+    path = write_log(tmp_path / "bad.log", [good, bad])
+    with pytest.raises(InputError) as info:
+        read_carmen(path)
+    text = str(info.value)
+    assert quoted in text and "line 2" in text
+    assert "\x1b" not in text and "\x07" not in text and len(text) < 600

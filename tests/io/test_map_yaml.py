@@ -106,3 +106,20 @@ def test_bad_map_yaml(tmp_path, doc, fragment):
     with pytest.raises(InputError) as exc:
         read_map(tmp_path / "g.yaml")
     assert fragment in str(exc.value) and "g.yaml" in str(exc.value)
+
+
+@pytest.mark.parametrize(("write", "words"), [
+    (lambda p: Image.fromarray(np.full((4, 5), 1000, np.uint16)).save(p, format="PPM"),
+     ["more than 8 bits", "convert it to 8-bit"]),  # maxval 65535: map_server reads 8-bit values
+    (lambda p: p.write_bytes(b""), ["empty file"]),
+    (lambda p: p.write_bytes(b"P5\n40 30\n255\n" + bytes(100)), ["truncated"]),
+])
+def test_a_map_image_that_is_not_8_bit_or_is_damaged_is_refused(tmp_path, write, words):
+    write(tmp_path / "m.pgm")
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump({"image": "m.pgm", "resolution": 0.1, "origin": [0, 0, 0]}))
+    with pytest.raises(InputError) as info:
+        read_map(tmp_path / "m.yaml")
+    text = str(info.value)
+    assert str(tmp_path / "m.pgm") in text and "unreadable map image" in text
+    for word in words:
+        assert word in text, text

@@ -9,7 +9,7 @@ import pytest
 
 from pipeline.config import MappingConfig
 from pipeline.io.map_yaml import FREE, OCCUPIED, UNKNOWN, OccupancyMap
-from pipeline.mapping.occupancy import build_occupancy_map, endpoint_occupied_share
+from pipeline.mapping.occupancy import MAX_MAP_CELLS, MapTooLargeError, build_occupancy_map, endpoint_occupied_share
 from pipeline.mapping.preview import write_preview
 from tests.fixtures.carmen_logs import ROOM, room_poses, room_ranges
 
@@ -163,6 +163,26 @@ def test_endpoint_share_tolerance_and_outside():
 def test_bad_shapes_are_rejected():
     with pytest.raises(ValueError):
         build_occupancy_map(np.zeros((3, 3)), np.zeros((2, 5)), 0.0, 0.1, RANGE_MAX, progress=False)
+
+
+def test_non_finite_poses_are_rejected():
+    poses = np.array([[0.0, 0.0, 0.0], [np.nan, 0.0, 0.0]])
+    with pytest.raises(ValueError, match="row 1"):
+        build_occupancy_map(poses, np.ones((2, 3)), 0.0, 0.1, RANGE_MAX, progress=False)
+
+
+@pytest.mark.parametrize("far", [1e7, 1e300, 1.7e308])
+def test_a_far_pose_is_refused_before_the_grid_is_allocated(far):
+    """One pose at x = 1e7 asked for a 60 GiB grid (MemoryError); now a MapTooLargeError, before allocating."""
+    poses = np.array([[0.0, 0.0, 0.0], [far, 0.0, 0.0], [-far, 1.0, 0.0]][: 2 if far < 1e300 else 3])
+    ranges = np.ones((len(poses), 3))
+    with pytest.raises(MapTooLargeError) as info:
+        build_occupancy_map(poses, ranges, 0.0, 0.1, RANGE_MAX, MappingConfig(resolution=0.05), progress=False)
+    assert f"{MAX_MAP_CELLS:,} cells allowed" in str(info.value) and "at 0.05 m" in str(info.value)
+    # A given frame (map patching) is checked the same way.
+    with pytest.raises(MapTooLargeError):
+        build_occupancy_map(poses[:1], ranges[:1], 0.0, 0.1, RANGE_MAX, MappingConfig(resolution=0.05),
+                            frame=(0.0, 0.0, 100_000, 100_000), progress=False)
 
 
 def test_preview_is_a_png_and_deterministic(tmp_path):

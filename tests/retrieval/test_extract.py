@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -134,6 +135,63 @@ def test_interrupted_extraction_resumes_and_a_changed_one_is_refused(site, torch
             a.column_names else a.equals(b)
         if "descriptor" in a.column_names:
             np.testing.assert_allclose(tables.descriptor_matrix(a), tables.descriptor_matrix(b), atol=1e-5)
+
+
+def _same_tables(out, reference) -> None:
+    for name in ("ipa.parquet", "rpa.parquet", "catalog.parquet"):
+        a = tables.read_table(out / name, name.split(".")[0])
+        b = tables.read_table(reference / name, name.split(".")[0])
+        if "descriptor" in a.column_names:
+            assert a.drop_columns(["descriptor"]).equals(b.drop_columns(["descriptor"])), name
+            np.testing.assert_allclose(tables.descriptor_matrix(a), tables.descriptor_matrix(b), atol=1e-5)
+        else:
+            assert a.equals(b), name
+
+
+@pytest.mark.slow
+def test_a_damaged_resume_chunk_is_computed_again_and_force_starts_clean(site, torch_extracted, tmp_path,
+                                                                        monkeypatch):
+    """A corrupted chunk in the resume folder made every rerun fail, --force included."""
+    import pipeline.retrieval.extract as X
+    from tests.test_chunked_encoding import Warnings
+
+    _, ing, model = site
+    cfg = load_config("ci", [*SETS, "retrieval.engine=torch"])
+    real, calls = X.describe, {"n": 0}
+
+    def failing(*a, **k):
+        calls["n"] += 1
+        if calls["n"] > 5:  # dies in the second chunk, as above
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(X, "describe", failing)
+    args = {"inputs": {"model": model, "data": ing}, "outputs": {"out": tmp_path / "d"}, "progress": False}
+    with pytest.raises(KeyboardInterrupt):
+        X.run_extract(cfg, **args)
+    monkeypatch.setattr(X, "describe", real)
+    partial = tmp_path / "d.partial"
+    ipa0 = partial / "ipa-00000.parquet"
+    ipa0.write_bytes(ipa0.read_bytes()[: ipa0.stat().st_size // 2])  # truncated
+    with Warnings() as warned:
+        out = X.run_extract(cfg, **args)
+    assert f"{ipa0}: damaged resume chunk" in warned.text and "computed again" in warned.text
+    assert not partial.exists()
+    _same_tables(out, torch_extracted)
+
+    # --force with a resume folder of garbage: another run's plan, unreadable chunks, a stray folder.
+    partial.mkdir()
+    (partial / "plan.json").write_text('{"fingerprint": "another run"}')
+    (partial / "ipa-00000.parquet").write_bytes(b"\x1b[2J garbage" * 50)
+    (partial / "rpa-00000.parquet").write_bytes(b"")
+    (partial / "stray").mkdir()
+    shutil.rmtree(out)
+    with pytest.raises(SitelocError, match="another model, site or settings is there.*--force"):
+        X.run_extract(cfg, **args)
+    assert (partial / "stray").is_dir()  # refused without --force: nothing touched
+    out = X.run_extract(cfg, **args, force=True)
+    assert not partial.exists()
+    _same_tables(out, torch_extracted)
 
 
 def test_cli_builds_the_index_evaluates_and_answers_a_query(site, extracted, tmp_path):

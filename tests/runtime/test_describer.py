@@ -89,3 +89,23 @@ def test_a_describer_json_naming_outputs_the_graph_lacks_is_refused(tmp_path):
     (tmp_path / "d.json").write_text(json.dumps(meta))
     with pytest.raises(BundleError, match=r"lacks the outputs \['backbone_map'\]"):
         OnnxDescriber(tmp_path / "d.onnx", tmp_path / "d.json")
+
+
+def test_an_image_file_is_decoded_by_the_shared_helper_and_a_damaged_one_named(tmp_path):
+    """What `localize --bundle` hands the describer for each frame: a path. A frame that cannot be decoded is an
+    InputError naming the file, not a PIL exception."""
+    from PIL import Image
+
+    from pipeline.errors import InputError
+    from pipeline.runtime.describer import camera_image, image_array
+
+    rgb = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    Image.fromarray(rgb).save(tmp_path / "f.png")
+    np.testing.assert_array_equal(image_array(tmp_path / "f.png"), image_array(rgb))
+    data = (tmp_path / "f.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
+    Image.fromarray(np.zeros((48, 64), np.uint16)).save(tmp_path / "deep.png")
+    for name, word in (("cut.png", "truncated"), ("deep.png", "16-bit")):
+        with pytest.raises(InputError, match=word) as info:
+            camera_image(tmp_path / name, (48, 64), "detector")
+        assert str(tmp_path / name) in str(info.value)
