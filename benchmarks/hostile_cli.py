@@ -3,8 +3,11 @@
 Every case builds its inputs from tiny generated fixtures, runs `siteloc ...` in a subprocess (the code of
 --code, so an older checkout can be compared with this one) and classifies the outcome:
 
-    clean      refused with exit 1, a short readable message, inputs untouched, nothing written
-    accepted   exit 0 on input that must be refused (silently wrong data), or refused input that must pass
+    clean      refused with exit 1, a short readable message naming the cause, inputs untouched, nothing
+               written (or, for valid input, accepted)
+    accepted   exit 0 on input that must be refused (silently wrong data)
+    refused    valid input refused
+    off-target refused, but not for the case's cause (another check happened to stop it)
     unexpected `error: unexpected ...`, a traceback, or another exit code
     data loss  an input changed or disappeared
     leftover   refused, but an output or a temporary was written
@@ -46,6 +49,7 @@ class Case:
     name: str
     build: Callable[[Path], tuple[list[str], list[Path], list[Path]]]  # work dir -> (argv, inputs, outputs)
     refuse: bool = True
+    words: tuple[str, ...] = ()  # a refusal is for the right reason when its message holds all of them
 
 
 def snapshot(paths: list[Path]) -> dict[str, bytes]:
@@ -108,7 +112,7 @@ def _image_empty(site: Path) -> None:
 def _latin1(site: Path) -> None:
     csv = site / "captures.csv"
     lines = csv.read_bytes().splitlines(keepends=True)
-    lines[1] = lines[1].rstrip(b"\n") + "K\xfcche".encode("latin-1") + b"\n"
+    lines[1] = lines[1].rstrip(b"\r\n") + " K\xfcche".encode("latin-1") + b"\n"
     csv.write_bytes(b"".join(lines))
 
 
@@ -161,7 +165,9 @@ def _bundle(work: Path) -> Path:
     (root / "map").mkdir()
     (root / "db" / "a.bin").write_bytes(bytes(range(256)) * 4)
     (root / "map" / "map.yaml").write_text("image: map.pgm\n")
-    (root / "filter.yaml").write_text("filter: {}\n")
+    (root / "filter.yaml").write_text(
+        "filter: {}\nretrieval: {top_n: 4, rerank: true, query_regions: 10, candidate_weights: [4, 3, 2, 1]}\n"
+        "laser: {angle_min: -1.5, angle_increment: 0.01, range_max: 10.0, base_from_laser: [0.0, 0.0, 0.0]}\n")
     write_manifest(root, {"bundle_version": "1.0", "site": "site"})
     return root
 
@@ -210,26 +216,26 @@ def _empty_archive(bundle: Path, work: Path) -> Path:
 
 
 CASES = [
-    Case("ingest: --out is the site, --force", ingest_case(out_rel="site", force=True)),
-    Case("ingest: --out inside the site, --force", ingest_case(out_rel="site/images", force=True)),
-    Case("ingest: --out contains the site, --force", ingest_case(out_rel=".", force=True)),
-    Case("ingest: row with an extra field", ingest_case(_extra_field)),
-    Case("ingest: Latin-1 byte in captures.csv", ingest_case(_latin1)),
-    Case("ingest: captures.csv in UTF-16", ingest_case(_utf16)),
-    Case("ingest: 10 MB line with escape bytes", ingest_case(_garbage_line)),
-    Case("ingest: 16-bit PNG", ingest_case(_image_16bit)),
-    Case("ingest: truncated image", ingest_case(_image_truncated)),
-    Case("ingest: empty image", ingest_case(_image_empty)),
+    Case("ingest: --out is the site, --force", ingest_case(out_rel="site", force=True), words=("input",)),
+    Case("ingest: --out inside the site, --force", ingest_case(out_rel="site/images", force=True), words=("input",)),
+    Case("ingest: --out contains the site, --force", ingest_case(out_rel=".", force=True), words=("input",)),
+    Case("ingest: row with an extra field", ingest_case(_extra_field), words=("line 2", "fields")),
+    Case("ingest: Latin-1 byte in captures.csv", ingest_case(_latin1), words=("line 2", "UTF-8")),
+    Case("ingest: captures.csv in UTF-16", ingest_case(_utf16), words=("UTF-16",)),
+    Case("ingest: 10 MB line with escape bytes", ingest_case(_garbage_line), words=("captures.csv",)),
+    Case("ingest: 16-bit PNG", ingest_case(_image_16bit), words=("16-bit",)),
+    Case("ingest: truncated image", ingest_case(_image_truncated), words=("truncated",)),
+    Case("ingest: empty image", ingest_case(_image_empty), words=("empty",)),
     Case("ingest: UTF-8 with byte-order mark (valid)", ingest_case(_utf8_bom), refuse=False),
     Case("ingest: a valid site (valid)", ingest_case(), refuse=False),
-    Case("ingest-log: every range NaN", log_case(_nan_lines)),
-    Case("ingest-log: one pose at x = 1e7", log_case(_far_pose_lines)),
-    Case("ingest-log: escape bytes in a line", log_case(_escape_line)),
-    Case("ingest-log: a valid log (valid)", log_case(lambda: room_log_lines(40)), refuse=False),
-    Case("localize: manifest.json is a link out", bundle_case(_manifest_link)),
-    Case("localize: manifest entry of the wrong type", bundle_case(_manifest_wrong_type)),
-    Case("localize: truncated bundle archive", bundle_case(_truncated_archive)),
-    Case("localize: empty bundle archive", bundle_case(_empty_archive)),
+    Case("ingest-log: every range NaN", log_case(_nan_lines), words=("valid range",)),
+    Case("ingest-log: one pose at x = 1e7", log_case(_far_pose_lines), words=("line",)),
+    Case("ingest-log: escape bytes in a line", log_case(_escape_line), words=("room.log",)),
+    Case("ingest-log: a valid log (valid)", log_case(lambda: room_log_lines(40), refuse=False), refuse=False),
+    Case("localize: manifest.json is a link out", bundle_case(_manifest_link), words=("manifest.json", "link")),
+    Case("localize: manifest entry of the wrong type", bundle_case(_manifest_wrong_type), words=("db/a.bin",)),
+    Case("localize: truncated bundle archive", bundle_case(_truncated_archive), words=("site-1.0.tar.gz",)),
+    Case("localize: empty bundle archive", bundle_case(_empty_archive), words=("site-1.0.tar.gz",)),
 ]
 
 
@@ -245,10 +251,12 @@ def classify(case: Case, code: Path, work: Path) -> tuple[str, str]:
         return "data loss", last
     if "unexpected" in text or "Traceback" in text or proc.returncode not in (0, 1):
         return "unexpected", last
-    if (proc.returncode == 0) == case.refuse:
-        return "accepted", last
     if not case.refuse:
-        return "clean", last
+        return ("clean" if proc.returncode == 0 else "refused"), last
+    if proc.returncode == 0:
+        return "accepted", last
+    if not all(w.lower() in text.lower() for w in case.words):
+        return "off-target", last
     if any(p.exists() for p in outputs) or any(".tmp-" in p.name for p in work.rglob("*")):
         return "leftover", last
     if len(text) > 4000 or "\x1b" in text or "\x07" in text:
@@ -269,7 +277,7 @@ def main() -> None:
             outcome, last = classify(case, args.code.resolve(), Path(tmp))
         counts[outcome] += 1
         print(f"{outcome:10s}  {case.name:48s}  {last[-150:].encode('unicode_escape').decode()}")
-    kinds = ("clean", "accepted", "unexpected", "data loss", "leftover", "noisy")
+    kinds = ("clean", "accepted", "refused", "off-target", "unexpected", "data loss", "leftover", "noisy")
     print(f"{len(CASES)} cases in {time.perf_counter() - t0:.0f} s: " + ", ".join(f"{k} {counts[k]}" for k in kinds))
 
 

@@ -117,3 +117,12 @@ def test_explain_prints_a_keys_default_value_and_meaning_and_refuses_an_unknown_
     res = runner.invoke(app, ["config", "show", "--explain", "filter.camera.treshold"])
     assert res.exit_code == 1 and "did you mean filter.camera.threshold" in res.output
     assert "Traceback" not in res.output
+
+
+@pytest.mark.parametrize("value", [".inf", "-.inf", ".nan"])
+def test_no_config_number_may_be_infinite_or_nan(value):
+    """A garbage number is refused when the config is read, not found mid-run."""
+    with pytest.raises(ConfigError, match="finite number"):
+        load_config("ci", [f"ingest_log.laser.range_max={value}"])
+    with pytest.raises(ConfigError, match="finite number"):
+        load_config("ci", [f"filter.sensor.sigma_hit={value}"])
