@@ -5,7 +5,8 @@ stops and the frames of every run whose name does not start with "mapping". For 
 PCA, learned from geo-tag pairs) the transforms are fitted on the database only, then every query is
 answered with the IPA Top-N and with its RPA re-ranking. Measures (see `metrics`): mAP@4 (the paper's
 figure) and recall@{1, 4, 10, 50}, with positives within {1, 2, 5} m and {30, 60} degrees.
-Outputs: metrics.json (every variant and threshold), report.md (the table), recall.png (recall@N curves
+Outputs: metrics.json (every variant and threshold; `by_source`: the configured variant's figures for test
+stops and run frames apart), report.md (the tables), recall.png (recall@N curves
 at 2 m / 30 deg), examples.png (queries and their Top-4, green when a positive), config.yaml, and for
 DVC (`pipeline.io.tracked`, see `write_tracked`) headline.json (mAP@4 and recall@1 of IPA and IPA + RPA
 with the configured whitening at 2 m / 30 deg) and plots/recall_at_n.csv (`n,ipa,ipa_rpa`).
@@ -171,6 +172,30 @@ def measure(ranked: np.ndarray, query_poses: np.ndarray, db_poses: np.ndarray) -
     return out
 
 
+def query_sources(splits: np.ndarray) -> np.ndarray:
+    """(Q,) "test stops" or "run frames" for each query's split ("test" or "run:<name>")."""
+    return np.where(np.asarray(splits).astype(str) == "test", "test stops", "run frames")
+
+
+def by_source(ranked: np.ndarray, sources: np.ndarray, query_poses: np.ndarray, db_poses: np.ndarray) -> dict:
+    """The main threshold's figures per query source, with what makes one source harder than another: how
+    far its queries stand from the nearest database image and how many positives each has."""
+    from pipeline.retrieval.metrics import map_at, positives, recall_at, relevance
+
+    out = {}
+    for source in sorted(set(sources.tolist())):
+        m = sources == source
+        pos = positives(query_poses[m], db_poses, *MAIN)
+        rel, has = relevance(ranked[m], pos), pos.any(axis=1)
+        nearest = np.linalg.norm(query_poses[m, None, :2] - db_poses[None, :, :2], axis=2).min(axis=1)
+        out[source] = {"queries": int(m.sum()), "queries_with_positive": int(has.sum()),
+                       "nearest_database_m_median": float(np.median(nearest)),
+                       "positives_mean": float(pos.sum(axis=1)[has].mean()) if has.any() else float("nan"),
+                       "map_at_4": map_at(rel, pos, 4), "recall_at_1": recall_at(rel, has, 1),
+                       "recall_at_4": recall_at(rel, has, 4)}
+    return out
+
+
 def run_evaluate_retrieval(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path],
                            force: bool = False, progress: bool = True) -> Path:
     from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
@@ -219,6 +244,8 @@ def run_evaluate_retrieval(cfg: SitelocConfig, *, inputs: dict[str, Path], outpu
                "paper_map_at_4": 0.742}
     whitening = r.whitening if r.whitening not in skipped else "pca"
     best = f"ipa+rpa / {whitening}"
+    metrics["by_source"] = {"variant": best, "sources": by_source(rankings[best], query_sources(qx.splits[queries]),
+                                                                  qx.poses[queries], ex.poses[db])}
     with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         write_text_atomic(tmp / "metrics.json", json.dumps(metrics, indent=2) + "\n")
         write_tracked(tmp, metrics, whitening)
@@ -262,4 +289,12 @@ def report_table(metrics: dict) -> str:
     for name, v in metrics["variants"].items():
         lines.append(f"| {name} | " + " | ".join(f"{v[f'{d:g}m_{h:g}deg']['map_at_4']:.3f}"
                                               for d in DISTANCES for h in HEADINGS) + " |")
+    if "by_source" in metrics:
+        lines += ["", f"{metrics['by_source']['variant']} by query source:", "",
+                  "| queries | count | with a positive | nearest database image (median) | positives (mean) | mAP@4 "
+                  "| R@1 | R@4 |", "|---|---|---|---|---|---|---|---|"]
+        for source, t in metrics["by_source"]["sources"].items():
+            lines.append(f"| {source} | {t['queries']} | {t['queries_with_positive']} | "
+                         f"{t['nearest_database_m_median']:.2f} m | {t['positives_mean']:.2f} | {t['map_at_4']:.3f} | "
+                         f"{t['recall_at_1']:.3f} | {t['recall_at_4']:.3f} |")
     return "\n".join(lines) + "\n"

@@ -213,6 +213,9 @@ def test_cli_builds_the_index_evaluates_and_answers_a_query(site, extracted, tmp
     assert set(m["variants"]) | {f"{s} / {w}" for w in m["skipped"] for s in ("ipa", "ipa+rpa")} == {
         f"{s} / {w}" for s in ("ipa", "ipa+rpa") for w in ("none", "pca", "learned")}
     assert "ipa+rpa / pca" in m["variants"]
+    sources = m["by_source"]["sources"]
+    assert m["by_source"]["variant"] == "ipa+rpa / pca" and set(sources) <= {"test stops", "run frames"}
+    assert sum(t["queries"] for t in sources.values()) == m["query_images"]
     for v in m["variants"].values():
         for key, t in v.items():
             if key not in ("dims", "top1") and t["queries_with_positive"]:
