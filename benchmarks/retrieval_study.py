@@ -1,6 +1,7 @@
 """What limits retrieval on a site: other global descriptors, SIFT verification, and where the misses land.
 
     .venv/bin/python benchmarks/retrieval_study.py --descriptors D --data DATA --model DET [--sift 150]
+    .venv/bin/python benchmarks/retrieval_study.py --descriptors D --data DATA --sift 300 --sift-only
 
 D is the output of `siteloc extract`, DATA the ingest it came from, DET the detector it used. Same
 database / queries / positives (2 m, 30 deg) as `siteloc evaluate-retrieval`.
@@ -11,7 +12,10 @@ database / queries / positives (2 m, 30 deg) as `siteloc evaluate-retrieval`.
    learned-whitened. One pass over every image (about 3 images/s on 2 cores).
 2. Where the Top-1 after re-ranking lands (distance and heading from the query), per query source.
 3. With `--sift N`: N sampled queries re-ranked by the RANSAC inliers of RootSIFT matches (OpenCV) between
-   the query and each of its IPA Top-50 (classic spatial verification), against the same queries' RPA order.
+   the query and each of its IPA Top-50 (classic spatial verification), against the same queries' RPA order:
+   inliers of a fundamental matrix (any scene) and of a homography (a poster, a plate, a wall). With
+   `--sift-only`, steps 1-2 are skipped and the IPA Top-50 is the extraction's own (as `evaluate-retrieval`
+   ranks it, PCA-whitened), so no detector is run.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ sys.path.insert(0, str(REPO))
 from pipeline.config import SitelocConfig  # noqa: E402
 from pipeline.machine import machine_info  # noqa: E402
 from pipeline.retrieval import evaluate as ev  # noqa: E402
+from pipeline.retrieval.metrics import positives  # noqa: E402
 from pipeline.retrieval.whitening import LearnedWhitening, PCAWhitening, geo_pairs  # noqa: E402
 
 POOLS = ("sum", "gem", "mac", "grid2")
@@ -104,7 +109,7 @@ def where_top1_lands(ranked, ex, db, queries) -> None:
         print(f"- {source}: {m.sum()} queries, Top-1 correct {good[m].mean():.3f}")
 
 
-def sift_verification(ex, db, queries, first, reranked, data: Path, n: int) -> None:
+def sift_verification(ex, db, queries, first, reranked, data: Path, n: int, label: str) -> None:
     import cv2
 
     sift, matcher = cv2.SIFT_create(nfeatures=800), cv2.BFMatcher(cv2.NORM_L2)
@@ -117,43 +122,72 @@ def sift_verification(ex, db, queries, first, reranked, data: Path, n: int) -> N
             cache[i] = (np.float32([k.pt for k in kp]), np.sqrt(des / (des.sum(1, keepdims=True) + 1e-7)))
         return cache[i]
 
-    def inliers(a: int, b: int) -> int:
+    def inliers(a: int, b: int) -> tuple[int, int]:
+        """RANSAC inliers of a fundamental matrix and of a homography between images a and b."""
         (pa, da), (pb, dbb) = features(a), features(b)
         if len(da) < 8 or len(dbb) < 8:
-            return 0
+            return 0, 0
         good = [m[0] for m in matcher.knnMatch(da, dbb, k=2) if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
         if len(good) < 8:
-            return 0
-        try:
-            _, mask = cv2.findFundamentalMat(pa[[g.queryIdx for g in good]], pb[[g.trainIdx for g in good]],
-                                             cv2.FM_RANSAC, 2.0, 0.999, 2000)
-        except cv2.error:
-            return 0
-        return 0 if mask is None else int(mask.sum())
+            return 0, 0
+        src, dst = pa[[g.queryIdx for g in good]], pb[[g.trainIdx for g in good]]
+        counts = []
+        for fit in (lambda: cv2.findFundamentalMat(src, dst, cv2.FM_RANSAC, 2.0, 0.999, 2000)[1],
+                    lambda: cv2.findHomography(src, dst, cv2.RANSAC, 4.0, maxIters=2000, confidence=0.999)[1]):
+            try:
+                mask = fit()
+            except cv2.error:
+                mask = None
+            counts.append(0 if mask is None else int(mask.sum()))
+        return counts[0], counts[1]
 
     pick = np.sort(np.random.default_rng(0).choice(len(queries), min(n, len(queries)), replace=False))
     t0 = time.perf_counter()
     counts = np.array([[inliers(int(queries[k]), int(db[j])) for j in first[k]] for k in pick])
     ms = 1e3 * (time.perf_counter() - t0) / len(pick)
-    verified = np.take_along_axis(first[pick], np.argsort(-counts, axis=1, kind="stable"), axis=1)
     print(f"\nSIFT verification on {len(pick)} sampled queries ({ms:.0f} ms a query, features included):")
     print("| order | mAP@4 | R@1 | R@4 | R@10 | R@50 |\n|---|---|---|---|---|---|")
-    for name, ranked in (("IPA (learned)", first[pick]), ("+ RPA", reranked[pick]), ("+ SIFT inliers", verified)):
+    orders = [(f"IPA ({label})", first[pick]), ("+ RPA", reranked[pick])]
+    for c, model in enumerate(("fundamental matrix", "homography")):
+        order = np.argsort(-counts[:, :, c], axis=1, kind="stable")
+        orders.append((f"+ SIFT inliers, {model}", np.take_along_axis(first[pick], order, axis=1)))
+    for name, ranked in orders:
         print(line(name, ranked, ex, db, queries[pick]))
+    # Where the homography order's wrong Top-1s land, and how much the best candidate matched at all.
+    qp, top1 = ex.poses[queries[pick]], orders[-1][1][:, 0]
+    pos = positives(qp, ex.poses[db], 2.0, 30.0)
+    hit = pos[np.arange(len(pick)), top1]
+    miss = ~hit & pos.any(axis=1)
+    dist = np.linalg.norm(qp[:, :2] - ex.poses[db[top1], :2], axis=1)[miss]
+    best = counts[:, :, 1].max(axis=1)
+    print(f"\nHomography order: {miss.sum()} of {pos.any(axis=1).sum()} Top-1s wrong; of those, "
+          f"{np.mean(dist <= 2):.2f} within 2 m (another heading), {np.mean((dist > 2) & (dist <= 10)):.2f} at "
+          f"2-10 m, {np.mean(dist > 10):.2f} beyond 10 m. Best candidate's inliers, median: right Top-1 "
+          f"{np.median(best[hit]):.0f}, wrong {np.median(best[miss]):.0f}; under 15: right "
+          f"{np.mean(best[hit] < 15):.2f}, wrong {np.mean(best[miss] < 15):.2f}")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--descriptors", type=Path, required=True, help="output of siteloc extract")
     ap.add_argument("--data", type=Path, required=True, help="the ingest it was extracted from")
-    ap.add_argument("--model", type=Path, required=True, help="the detector it was extracted with")
+    ap.add_argument("--model", type=Path, help="the detector it was extracted with (not with --sift-only)")
     ap.add_argument("--sift", type=int, default=0, help="queries to verify with SIFT (0: skip)")
+    ap.add_argument("--sift-only", action="store_true", help="only the SIFT verification of the extraction's "
+                    "own IPA Top-50, PCA-whitened (no detector run)")
     args = ap.parse_args()
+    if not args.sift_only and args.model is None:
+        ap.error("--model is required unless --sift-only")
     for text in machine_info():
         print(text)
     cfg = SitelocConfig().retrieval
     ex = ev.load_extracted(args.descriptors)
     db, queries = ev.split_database_queries(ex)
+    if args.sift_only:
+        ranked = ev.rank_all(ex, db, ex, queries, "pca", cfg)
+        print(f"\n{len(db)} database images, {len(queries)} queries; positives within 2 m and 30 deg")
+        sift_verification(ex, db, queries, ranked["ipa"], ranked["ipa+rpa"], args.data, args.sift or 150, "PCA")
+        return
     pairs = geo_pairs(ex.poses[db, :2], ex.poses[db, 2], ex.groups[db], max_distance=cfg.pair_distance,
                       max_heading_deg=cfg.pair_heading_deg)
     found = global_descriptors(ex, args.data, args.model)
@@ -171,7 +205,7 @@ def main() -> None:
                 keep = {"first": first, "reranked": reranked}
     where_top1_lands(keep["reranked"], ex, db, queries)
     if args.sift:
-        sift_verification(ex, db, queries, keep["first"], keep["reranked"], args.data, args.sift)
+        sift_verification(ex, db, queries, keep["first"], keep["reranked"], args.data, args.sift, "learned")
 
 
 if __name__ == "__main__":
