@@ -180,14 +180,16 @@ def query_sources(splits: np.ndarray) -> np.ndarray:
 def by_source(ranked: np.ndarray, sources: np.ndarray, query_poses: np.ndarray, db_poses: np.ndarray) -> dict:
     """The main threshold's figures per query source, with what makes one source harder than another: how
     far its queries stand from the nearest database image and how many positives each has."""
+    from scipy.spatial import cKDTree
+
     from pipeline.retrieval.metrics import map_at, positives, recall_at, relevance
 
-    out = {}
+    out, tree = {}, cKDTree(db_poses[:, :2])
     for source in sorted(set(sources.tolist())):
         m = sources == source
         pos = positives(query_poses[m], db_poses, *MAIN)
         rel, has = relevance(ranked[m], pos), pos.any(axis=1)
-        nearest = np.linalg.norm(query_poses[m, None, :2] - db_poses[None, :, :2], axis=2).min(axis=1)
+        nearest = tree.query(query_poses[m, :2])[0]
         out[source] = {"queries": int(m.sum()), "queries_with_positive": int(has.sum()),
                        "nearest_database_m_median": float(np.median(nearest)),
                        "positives_mean": float(pos.sum(axis=1)[has].mean()) if has.any() else float("nan"),
