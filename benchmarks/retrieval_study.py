@@ -155,7 +155,7 @@ def sift_verification(ex, db, queries, first, reranked, data: Path, n: int, labe
         print(line(name, ranked, ex, db, queries[pick]))
     # Where the homography order's wrong Top-1s land, and how much the best candidate matched at all.
     qp, top1 = ex.poses[queries[pick]], orders[-1][1][:, 0]
-    pos = positives(qp, ex.poses[db], 2.0, 30.0)
+    pos = positives(qp, ex.poses[db], *ev.MAIN)
     hit = pos[np.arange(len(pick)), top1]
     miss = ~hit & pos.any(axis=1)
     dist = np.linalg.norm(qp[:, :2] - ex.poses[db[top1], :2], axis=1)[miss]
