@@ -91,6 +91,9 @@ def colmap_camera(cam: Camera) -> tuple[str, list[float]]:
 
 def build_reconstruction(site: Site, rows: list[CaptureRow], names: dict[str, str], camera_height: float):
     """The pycolmap.Reconstruction of the views: cameras 1..n_views, rig 1, one registered frame per stop."""
+    if site.camera is None:
+        raise InputError(f"site '{site.name}' has no camera", [Problem(
+            "site.yaml", "a laser-only site has no images for COLMAP", fix="export a site with captures")])
     rec = pycolmap.Reconstruction()
     cam = site.camera
     offsets = site.rig.yaw_offsets

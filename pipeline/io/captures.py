@@ -248,7 +248,10 @@ def check_images(
         except ImageError as exc:  # collected: every bad image is reported at once
             problems.add(csv_path, f"image '{r.image}' is unreadable: {exc.message}", row=r.line, fix=exc.fix)
             continue
-        if site is not None and (w, h) != (site.camera.width, site.camera.height):
+        if site is not None and site.camera is None:
+            problems.add(csv_path, f"image '{r.image}' is listed, but site.yaml has no camera", row=r.line,
+                         fix="add the camera's intrinsics (camera: width, height, fx, fy, cx, cy) to site.yaml")
+        elif site is not None and (w, h) != (site.camera.width, site.camera.height):
             problems.add(
                 csv_path,
                 f"image '{r.image}' is {w}x{h}, site.yaml camera is {site.camera.width}x{site.camera.height}",

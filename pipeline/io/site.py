@@ -108,7 +108,7 @@ class Extrinsics(_Strict):
 
 class Site(_Strict):
     name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
-    camera: Camera
+    camera: Camera | None = None  # None: a laser-only site (runs of a robot without a camera, no captures)
     rig: Rig = Rig()
     laser: Laser = Laser()
     classes: tuple[str, ...] = Field(DEFAULT_CLASSES, min_length=1)

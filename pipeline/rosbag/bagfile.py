@@ -97,12 +97,18 @@ def messages(reader, path: Path, connections=None) -> Iterator:
 
 
 class BagWriter:
-    """Writes one recording; topics are added once, messages in any order: they are written sorted by time."""
+    """Writes one recording; topics are added once, messages in any order: they are written sorted by time.
 
-    def __init__(self, path: Path, fmt: str):
+    With `ordered=True` the caller writes in time order (each message at a bag time no earlier than the last)
+    and every message goes to the file at once: memory stays bounded however long the recording.
+    """
+
+    def __init__(self, path: Path, fmt: str, *, ordered: bool = False):
         if fmt not in FORMATS:
             raise ValueError(f"format must be one of {FORMATS}")
         self.path, self.fmt = Path(path), fmt
+        self.ordered = ordered
+        self._last_ns = -1
         self.msgs = Messages.for_format(fmt)
         self.conns: dict[str, object] = {}
         self.counts: dict[str, int] = {}
@@ -147,5 +153,13 @@ class BagWriter:
     def write(self, topic: str, bag_time: float, msg) -> None:
         from pipeline.rosbag.messages import ns
 
-        self._pending.append((ns(bag_time), len(self._pending), topic, self.msgs.serialize(msg)))
+        t = ns(bag_time)
+        if self.ordered:
+            if t < self._last_ns:
+                raise ValueError(f"{topic}: bag time {bag_time:.6f} s is before the last message's "
+                                 f"({self._last_ns * 1e-9:.6f} s); an ordered BagWriter takes messages in time order")
+            self.writer.write(self.conns[topic], t, self.msgs.serialize(msg))
+            self._last_ns = t
+        else:
+            self._pending.append((t, len(self._pending), topic, self.msgs.serialize(msg)))
         self.counts[topic] += 1

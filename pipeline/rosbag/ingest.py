@@ -25,10 +25,17 @@ from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem
 from pipeline.io.atomic import atomic_dir, check_output, write_bytes_atomic, write_text_atomic
 from pipeline.io.capture_runs import write_run
+from pipeline.rosbag.messages import yaw_quat
 from pipeline.rosbag.read import Recording, load_frames, read_recording
+from pipeline.rosbag.scans import Grid, mirror
 from pipeline.rosbag.stops import stops_every, turning_stops
 from pipeline.rosbag.transforms import compose2d, inverse2d
 from pipeline.runtime.motion import wrap_angle
+
+#: A laser whose scan plane leans further than this from the floor's is refused.
+LEVEL_TOLERANCE_DEG = 10.0
+#: /odom and tf's odom -> base disagreeing by more than this (motion since the start) is reported.
+ODOM_DISAGREE_M, ODOM_DISAGREE_DEG = 0.05, 2.0
 
 
 @dataclass
@@ -58,20 +65,42 @@ class Drive:
     report: dict = field(default_factory=dict)
 
 
-def _frames(rec: Recording, opts: BagOptions) -> tuple[str, str, str]:
-    m = opts.frames.get("map", "map")
-    odom = opts.frames.get("odom", rec.odom_frame or "odom")
-    base = opts.frames.get("base", rec.base_frame or "base_link")
+def _base_frame(rec: Recording, opts: BagOptions, odom: str) -> str:
+    """The robot's base: --frame base=..., else /odom's child frame, else the one frame odom moves in tf,
+    else base_link or base_footprint, whichever tf has."""
+    if "base" in opts.frames:
+        return opts.frames["base"].lstrip("/")
+    if rec.base_frame:
+        return rec.base_frame
+    moving = [c for c, e in rec.tf.edges.items() if e.parent == odom and not e.static]
+    if len(moving) == 1:
+        return moving[0]
     known = rec.tf.frames()
-    fix = "record /tf with odom -> base_link (or /odom) and the localization's map -> odom; --frame names others"
-    for role, f in (("base", base), ("odom", odom), ("map", m)):
+    return next((f for f in ("base_link", "base_footprint") if f in known), "base_link")
+
+
+def _frames(rec: Recording, opts: BagOptions) -> tuple[str | None, str, str]:
+    """(map or None, odom, base) frames. Without a map frame connected to the base the recording has no
+    reference (no localization was recorded): its runs have estimates but no ground truth."""
+    m = opts.frames.get("map", "map").lstrip("/")
+    odom = opts.frames.get("odom", rec.odom_frame or "odom").lstrip("/")
+    base = _base_frame(rec, opts, odom)
+    known = rec.tf.frames()
+    fix = "record /tf with odom -> base_link (or /odom); --frame odom=NAME --frame base=NAME name others"
+    for role, f in (("base", base), ("odom", odom)):
         if f not in known:
             raise InputError(f"{rec.path}: no frame '{f}' in tf", [Problem(
-                f"{rec.path} /tf", f"the {role} frame '{f}' never appears, so '{m}' and '{base}' are not connected "
-                f"(frames: {sorted(known)})", fix=fix)])
-    if rec.tf.path(m, base) is None:
-        raise InputError(f"{rec.path}: tf has no map -> base_link", [Problem(
-            f"{rec.path} /tf", f"'{m}' and '{base}' are not connected (tree: {_tree(rec)})", fix=fix)])
+                f"{rec.path} /tf", f"the {role} frame '{f}' never appears, so there is no odometry (frames: "
+                f"{sorted(known)})", fix=fix)])
+    if rec.tf.path(odom, base) is None:
+        raise InputError(f"{rec.path}: tf has no {odom} -> {base}", [Problem(
+            f"{rec.path} /tf", f"'{odom}' and '{base}' are not connected (tree: {_tree(rec)})", fix=fix)])
+    if m not in known or rec.tf.path(m, base) is None:
+        if "map" in opts.frames:
+            raise InputError(f"{rec.path}: no frame '{m}' connected to '{base}' in tf", [Problem(
+                f"{rec.path} /tf", f"--frame map={m}: not connected to '{base}' (tree: {_tree(rec)})",
+                fix="name the reference frame that tf connects to the base, or leave --frame map out")])
+        return None, odom, base
     return m, odom, base
 
 
@@ -121,12 +150,64 @@ def _t0(rec: Recording) -> float:
     return min(firsts) if firsts else 0.0
 
 
+def level_laser(rec: Recording, base: str) -> None:
+    """Bring an upside-down laser's scans to an upright one's (`scans.mirror`); refuse a tilted laser.
+    Once per recording: the geometry in `rec.laser` says whether it was done."""
+    if rec.laser is None or "mirrored" in rec.laser:
+        return
+    mount = _mount(rec, base, rec.laser_frame, "laser")
+    up = float(mount.rot.as_matrix()[0][2, 2])  # the laser's z axis, seen from the base's
+    if abs(up) < math.cos(math.radians(LEVEL_TOLERANCE_DEG)):
+        raise InputError(f"{rec.path}: the laser is tilted", [Problem(
+            f"{rec.path} /tf_static {base} -> {rec.laser_frame}", f"the scan plane is tilted "
+            f"{math.degrees(math.acos(min(abs(up), 1.0))):.1f} deg from level (at most {LEVEL_TOLERANCE_DEG} deg)",
+            fix="a 2-D filter needs a level scan: check the mount in tf_static (a URDF error?) or flatten the scan "
+                "(pointcloud_to_laserscan)")])
+    rec.laser["mirrored"] = up < 0
+    if up < 0:
+        grid = Grid(rec.laser["angle_min"], rec.laser["angle_increment"], rec.laser["beams"])
+        rec.ranges, flipped = mirror(rec.ranges, grid)
+        rec.laser["angle_min"] = flipped.angle_min
+
+
+def _odometry_report(rec: Recording, odom_f: str, base: str, stamps: np.ndarray) -> dict:
+    """Which odometry the runs use (tf's odom -> base, else /odom) and, with both, how far they disagree."""
+    topic = rec.topics.get("odom")
+    if rec.odometry_source != "tf" or not rec.odom_msgs or len(stamps) == 0:
+        return {"source": rec.odometry_source, "topic": topic}
+    from pipeline.rosbag.transforms import TfBuffer
+
+    other = TfBuffer(rec.tf.max_gap, rec.tf.tolerance)
+    for stamp, xyz, quat in rec.odom_msgs:
+        other.add("odom", "base", stamp, xyz, quat, static=False)
+    a, b = rec.tf.lookup(odom_f, base, stamps), other.lookup("odom", "base", stamps)
+    both = a.valid & b.valid
+    if not both.any():
+        return {"source": "tf", "topic": topic}
+    pa, pb = a.floor_pose(0)[both], b.floor_pose(0)[both]
+    # Frames may start apart (each its own origin): compare the motion since the first common stamp.
+    da, db = compose2d(inverse2d(pa[:1]), pa), compose2d(inverse2d(pb[:1]), pb)
+    dist = np.hypot(*(da[:, :2] - db[:, :2]).T)
+    turn = np.degrees(np.abs(wrap_angle(da[:, 2] - db[:, 2])))
+    return {"source": "tf", "topic": topic, "topic_disagrees_m_max": round(float(dist.max()), 4),
+            "topic_disagrees_deg_max": round(float(turn.max()), 3),
+            "disagrees": bool(dist.max() > ODOM_DISAGREE_M or turn.max() > ODOM_DISAGREE_DEG)}
+
+
 def extract_drive(rec: Recording, site_offsets, opts: BagOptions, tol_deg: float, use_stops: bool) -> Drive:
     m, odom_f, base = _frames(rec, opts)
-    drive = Drive(rec)
+    level_laser(rec, base)
+    drive = Drive(rec, report={"reference": m is not None})
     cam_mount = _mount(rec, base, rec.camera_frame, "camera")
     dropped = {"duplicate_stamps": len(rec.dropped)}
-    if rec.frames:
+    if rec.frames and m is None:
+        if rec.ranges is None:  # a camera-only recording is a capture: its stops need where each frame was taken
+            raise InputError(f"{rec.path}: no reference in tf", [Problem(
+                f"{rec.path} /tf", f"camera frames need a pose, and no frame 'map' connects to '{base}' "
+                f"(tree: {_tree(rec)})", fix="record the localization's map -> odom (or motion capture) with the "
+                "camera; --frame map=NAME names another reference frame")])
+        dropped["frames_without_pose"] = len(rec.frames)
+    elif rec.frames:
         fs = np.array([f[0] for f in rec.frames])
         map_from_base = rec.tf.lookup(m, base, fs)
         ok = map_from_base.valid
@@ -150,10 +231,14 @@ def extract_drive(rec: Recording, site_offsets, opts: BagOptions, tol_deg: float
         idx = np.arange(0, len(rec.scan_stamps), max(1, opts.scan_stride))
         t = rec.scan_stamps[idx]
         odom = rec.tf.lookup(odom_f, base, t)
-        ref = rec.tf.lookup(m, base, t)
+        ref = rec.tf.lookup(m, base, t) if m is not None else None
         ok = odom.valid
+        drive.report["odometry"] = _odometry_report(rec, odom_f, base, t)
+        if ref is None:
+            ref = odom.__class__(odom.rot, np.full_like(odom.xyz, np.nan), np.zeros(len(t), bool))
         dropped["scans_without_odometry"] = int((~ok).sum())
-        dropped["scans_without_reference"] = int((ok & ~ref.valid).sum())
+        if m is not None:
+            dropped["scans_without_reference"] = int((ok & ~ref.valid).sum())
         idx, t = idx[ok], t[ok]
         odom_p, ref_p = odom.floor_pose(0)[ok], np.where(ref.valid[ok, None], ref.floor_pose(0)[ok], np.nan)
         image = [None] * len(t)
@@ -173,7 +258,8 @@ def extract_drive(rec: Recording, site_offsets, opts: BagOptions, tol_deg: float
         drive.run = {"t": t - t[0] if len(t) else t, "t0": float(t[0]) if len(t) else 0.0, "odom": odom_p,
                      "gt": ref_p, "ranges": rec.ranges[idx],
                      "image": image, "kidnapped": _kidnapped(odom_p, ref_p, opts)}
-        dropped["tf_gaps"] = _gaps(rec, m, base, np.r_[t, [f[0] for f in rec.frames]])
+        dropped["tf_gaps"] = _gaps(rec, m or odom_f, base, np.r_[t, [f[0] for f in rec.frames]])
+        dropped["resampled_scans"] = rec.resampled_scans
     dropped["stream_gaps"] = stream_gaps(rec)
     drive.report["dropped"] = dropped
     return drive
@@ -203,21 +289,19 @@ def _kidnapped(odom: np.ndarray, ref: np.ndarray, opts: BagOptions) -> list[bool
 
 
 def site_of(recs: list[Recording], drives: list[Drive], name: str, opts: BagOptions):
+    """site.yaml from the recordings: the camera of those with one (none: a laser-only site), the laser of the
+    first with scans, the mounts from tf_static."""
     from pipeline.io.site import Extrinsic, Extrinsics, Laser, Site
 
     with_cam = [r for r in recs if r.intrinsics is not None]
-    if not with_cam:
-        raise InputError("no camera in any recording", [Problem(str(r.path), "has no camera topic",
-                                                                fix="record the camera (Image or CompressedImage)")
-                                                        for r in recs])
-    k = with_cam[0].intrinsics
-    for r in with_cam[1:]:
-        if r.intrinsics != k:
-            raise InputError("recordings disagree on the camera", [Problem(
-                f"{r.path} {r.topics['camera_info']}", f"intrinsics {r.intrinsics} differ from {k} "
-                f"({with_cam[0].path})", fix="ingest recordings of one calibrated camera together")])
-    camera = k
-    laser, ext = Laser(), {}
+    camera, laser, ext = None, Laser(), {}
+    if with_cam:
+        camera = with_cam[0].intrinsics
+        for r in with_cam[1:]:
+            if r.intrinsics != camera:
+                raise InputError("recordings disagree on the camera", [Problem(
+                    f"{r.path} {r.topics['camera_info']}", f"intrinsics {r.intrinsics} differ from {camera} "
+                    f"({with_cam[0].path})", fix="ingest recordings of one calibrated camera together")])
     with_laser = [r for r in recs if r.laser is not None]
     for r in with_laser[1:]:
         if r.laser["beams"] != with_laser[0].laser["beams"]:
@@ -226,27 +310,31 @@ def site_of(recs: list[Recording], drives: list[Drive], name: str, opts: BagOpti
                 f"{with_laser[0].laser['beams']}", fix="ingest recordings of one laser configuration together")])
     if with_laser:
         laser, ext["base_from_laser"] = laser_of(with_laser[0], opts)
-    r = with_cam[0]
-    _, _, base = _frames(r, opts)
-    cm = _mount(r, base, r.camera_frame, "camera")
-    ext["base_from_camera"] = Extrinsic(xyz=tuple(np.round(cm.xyz[0], 6)),
-                                        quat_xyzw=tuple(np.round(cm.rot.as_quat()[0], 9)))
+    if with_cam:
+        r = with_cam[0]
+        _, _, base = _frames(r, opts)
+        cm = _mount(r, base, r.camera_frame, "camera")
+        ext["base_from_camera"] = Extrinsic(xyz=tuple(np.round(cm.xyz[0], 6)),
+                                            quat_xyzw=tuple(np.round(cm.rot.as_quat()[0], 9)))
     return Site(name=name, camera=camera, laser=laser, extrinsics=Extrinsics(**ext))
 
 
 def laser_of(r: Recording, opts: BagOptions):
-    """site.yaml's laser (geometry of the first scan, 2-D mount) and its 3-D extrinsic, from a recording."""
+    """site.yaml's laser (the recording's beam grid, 2-D mount) and its 3-D extrinsic, from a recording. An
+    upside-down laser's scans were mirrored (`level_laser`): its extrinsic is the upright mount at its yaw."""
     from pipeline.io.site import Extrinsic, Laser, LaserMount
 
-    g = r.laser
     _, _, base = _frames(r, opts)
+    level_laser(r, base)
+    g = r.laser
     mount = _mount(r, base, r.laser_frame, "laser")
     mx, my, myaw = mount.floor_pose(0)[0]
     laser = Laser(angle_min_deg=round(math.degrees(g["angle_min"]), 4),
                   angle_max_deg=round(math.degrees(g["angle_min"] + (g["beams"] - 1) * g["angle_increment"]), 4),
                   beams=g["beams"], range_max=g["range_max"],
                   mount=LaserMount(x=round(mx, 6), y=round(my, 6), yaw_deg=round(math.degrees(myaw), 6)))
-    return laser, Extrinsic(xyz=tuple(np.round(mount.xyz[0], 6)), quat_xyzw=tuple(np.round(mount.rot.as_quat()[0], 9)))
+    quat = yaw_quat(myaw) if g.get("mirrored") else mount.rot.as_quat()[0]
+    return laser, Extrinsic(xyz=tuple(np.round(mount.xyz[0], 6)), quat_xyzw=tuple(np.round(quat, 9)))
 
 
 def map_of(recs: list[Recording], map_yaml: Path | None):
@@ -339,6 +427,36 @@ def _annotations(src: Path, tmp: Path) -> dict:
             "boxes": len(doc["annotations"])}
 
 
+def recording_notes(d: Drive) -> dict:
+    """What a user should know about how a recording was read: odometry source, reference, laser."""
+    laser = d.rec.laser or {}
+    return {"odometry": d.report.get("odometry"), "reference": d.report.get("reference"),
+            "laser": {"frame": d.rec.laser_frame, "mirrored": bool(laser.get("mirrored")),
+                      "resampled_scans": d.rec.resampled_scans} if laser else None}
+
+
+def notes_text(r: dict) -> list[str]:
+    """`recording_notes` as sentences (bag_report.md, the CLI)."""
+    out = []
+    odo = r.get("odometry") or {}
+    if odo.get("source") == "tf":
+        out.append("odometry from /tf (odom -> base)" + (
+            f"; {odo['topic']} disagrees by up to {odo['topic_disagrees_m_max']} m / "
+            f"{odo['topic_disagrees_deg_max']} deg and is not used" if odo.get("disagrees") else
+            f"; {odo['topic']} agrees" if odo.get("topic") and "topic_disagrees_m_max" in odo else ""))
+    elif odo.get("source") == "topic":
+        out.append(f"odometry from {odo.get('topic')} (nav_msgs/Odometry; /tf has no odom -> base)")
+    if r.get("reference") is False:
+        out.append("no reference (no map frame in tf): estimates without error metrics")
+    laser = r.get("laser") or {}
+    if laser.get("mirrored"):
+        out.append(f"the laser '{laser['frame']}' is mounted upside down: its scans are mirrored")
+    if laser.get("resampled_scans"):
+        out.append(f"{laser['resampled_scans']} scans had another beam count or sweep and were resampled onto the "
+                   "first scan's beams")
+    return out
+
+
 def _report_md(rep: dict) -> str:
     lines = [f"# Bag ingest report: {rep['site']}", "", f"{rep['stops']} stops from {len(rep['recordings'])} "
              f"recordings ({rep['messages']} messages in {rep['seconds']:.1f} s, {rep['messages_per_s']:.0f} msg/s).",
@@ -358,6 +476,8 @@ def _report_md(rep: dict) -> str:
         for s in r["incomplete_stops"]:
             lines.append(f"\n- {name}: at ({s['at'][0]:.2f}, {s['at'][1]:.2f}) t={s['t']:.1f} s: {s['why']}"
                          + (f" (views {s['missing_views']})" if s["missing_views"] else ""))
+    for name, r in rep["recordings"].items():
+        lines += [f"\n- {name}: {note}" for note in notes_text(r)]
     if rep.get("ingest_needs"):
         lines += ["", f"`siteloc ingest` needs: {rep['ingest_needs']}"]
     return "\n".join(lines) + "\n"
@@ -396,12 +516,16 @@ def run_ingest_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Path]
     site = site_of(recs, drives, name, opts)
     occ = map_of(recs, inputs.get("map"))
     n_stops = sum(len(d.stops) for d in drives)
-    if n_stops == 0:
+    if n_stops == 0 and site.camera is not None:
         raise InputError("no capture stops", [Problem(str(d.rec.path), f"{len(d.incomplete)} incomplete stops, none "
                                                       "complete", fix="turn in place through 360 deg at each stop, "
                                                       "or use --stops every for a continuous drive") for d in drives])
-    spread = max(s.spread for d in drives for s in d.stops)
-    head = math.degrees(max(s.heading_error for d in drives for s in d.stops))
+    if n_stops == 0 and not any(d.run is not None and len(d.run["t"]) for d in drives):
+        raise InputError("nothing to ingest", [Problem(str(d.rec.path), "no camera stops and no scan with odometry",
+                                                       fix="record /scan with /odom or odom -> base_link in /tf")
+                                               for d in drives])
+    spread = max((s.spread for d in drives for s in d.stops), default=0.0)
+    head = math.degrees(max((s.heading_error for d in drives for s in d.stops), default=0.0))
     needs = []
     if spread > cfg.ingest.position_tolerance_m:
         needs.append(f"--set ingest.position_tolerance_m={math.ceil(spread * 100) / 100 + 0.01:.2f}")
@@ -426,7 +550,7 @@ def run_ingest_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Path]
                 "scans": 0 if r.ranges is None else len(r.ranges), "stops": len(d.stops),
                 "incomplete_stops": [{"at": list(s.at), "t": round(s.stamp - _t0(r), 3), "missing_views":
                                       s.missing_views, "why": s.why} for s in d.incomplete],
-                "dropped": d.report["dropped"]}
+                "dropped": d.report["dropped"], **recording_notes(d)}
         write_text_atomic(tmp / "bag_report.json", json.dumps(rep, indent=2) + "\n")
         write_text_atomic(tmp / "bag_report.md", _report_md(rep))
         write_effective_config(cfg, tmp, stage="ingest_bag", inputs={"bags": ",".join(map(str, bags))})

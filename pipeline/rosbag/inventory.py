@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.rosbag.bagfile import bag_name, messages, open_reader
-from pipeline.rosbag.read import ROLE_TYPES
+from pipeline.rosbag.read import ROLE_TYPES, TF_TYPES
 
 
 def inventory(path: Path) -> dict:
@@ -24,7 +24,7 @@ def inventory(path: Path) -> dict:
         t = np.asarray(stamps[topic], dtype=np.int64)
         span = (t.max() - t.min()) * 1e-9 if len(t) > 1 else 0.0
         role = next((r for r, tys in ROLE_TYPES.items() if types[topic] in tys), None)
-        if topic in ("/tf", "/tf_static"):
+        if topic in ("/tf", "/tf_static") and types[topic] in TF_TYPES:
             role = topic.strip("/")
         topics[topic] = {"type": types[topic], "count": int(len(t)),
                          "rate_hz": round((len(t) - 1) / span, 2) if span > 0 else None, "role": role}

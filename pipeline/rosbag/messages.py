@@ -22,6 +22,9 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 TF = "tf2_msgs/msg/TFMessage"
 GRID = "nav_msgs/msg/OccupancyGrid"
 POSE_COV = "geometry_msgs/msg/PoseWithCovarianceStamped"
+POSE_ARRAY = "geometry_msgs/msg/PoseArray"
+STRING = "std_msgs/msg/String"
+FLOAT32 = "std_msgs/msg/Float32"
 
 ROS1_NAMES = {"d": "D", "k": "K", "r": "R", "p": "P"}  # CameraInfo's fields in ROS 1
 
@@ -155,6 +158,29 @@ class Messages:
         pwc = T["geometry_msgs/msg/PoseWithCovariance"](
             pose=self.pose((pose_xyt[0], pose_xyt[1], 0.0), yaw_quat(pose_xyt[2])), covariance=cov.ravel())
         return self._make(POSE_COV, header=self.header(stamp, frame_id, seq), pose=pwc)
+
+    def laser_scan(self, stamp: float, frame_id: str, ranges: np.ndarray, angle_min: float, angle_increment: float,
+                   range_min: float, range_max: float, scan_time: float = 0.0, seq: int = 0):
+        """A LaserScan with its range_min (`scan` writes 0)."""
+        msg = self.scan(stamp, frame_id, ranges, angle_min, angle_increment, range_max, scan_time, seq)
+        msg.range_min = float(range_min)
+        return msg
+
+    def pose_array(self, stamp: float, poses_xyt: np.ndarray, frame_id: str = "map", seq: int = 0):
+        """geometry_msgs/PoseArray of (N, 3) x, y, heading on the floor (z = 0)."""
+        T = self.T
+        Pose, Point, Quat = T["geometry_msgs/msg/Pose"], T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Quaternion"]
+        p = np.asarray(poses_xyt, dtype=np.float64).reshape(-1, 3)
+        rows = np.column_stack([p[:, 0], p[:, 1], np.sin(p[:, 2] / 2.0), np.cos(p[:, 2] / 2.0)]).tolist()
+        poses = [Pose(position=Point(x=x, y=y, z=0.0), orientation=Quat(x=0.0, y=0.0, z=qz, w=qw))
+                 for x, y, qz, qw in rows]
+        return T[POSE_ARRAY](header=self.header(stamp, frame_id, seq), poses=poses)
+
+    def string(self, text: str):
+        return self.T[STRING](data=str(text))
+
+    def float32(self, value: float):
+        return self.T[FLOAT32](data=float(value))
 
 
 def typestore(generation: str):

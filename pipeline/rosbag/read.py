@@ -11,6 +11,7 @@ Frames are checked on the first pass but their bytes are read only for the frame
 from __future__ import annotations
 
 import io
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,12 +22,15 @@ from pipeline.io.site import Camera, Distortion
 from pipeline.rosbag.bagfile import bag_name, messages, open_reader
 from pipeline.rosbag.messages import CAMERA_INFO, COMPRESSED, GRID, IMAGE, ODOMETRY, SCAN, TF, stamp_of
 from pipeline.rosbag.messages import field as msg_field
+from pipeline.rosbag.scans import Grid, cleaned, counter_clockwise, resample
 from pipeline.rosbag.transforms import TfBuffer
 
 ENCODINGS = ("rgb8", "bgr8", "mono8", "jpeg", "png")
 ROLE_TYPES = {"camera": (COMPRESSED, IMAGE), "camera_info": (CAMERA_INFO,), "scan": (SCAN,), "odom": (ODOMETRY,),
               "map": (GRID,)}
 ROLES = tuple(ROLE_TYPES)
+#: tf's message types: tf2_msgs/TFMessage, and tf/tfMessage of ROS 1 recordings made before tf2 (same fields).
+TF_TYPES = (TF, "tf/msg/tfMessage")
 
 
 @dataclass
@@ -39,7 +43,8 @@ class Recording:
     intrinsics: Camera | None = None
     scan_stamps: np.ndarray | None = None
     ranges: np.ndarray | None = None  # (N, beams) float32
-    laser: dict | None = None  # angle_min, angle_increment, beams, range_max (radians, m)
+    laser: dict | None = None  # angle_min, angle_increment, beams, range_min, range_max (radians, m), CCW
+    resampled_scans: int = 0  # scans whose beam count or sweep differed from the first's (scans.resample)
     laser_frame: str | None = None
     odom_frame: str | None = None
     base_frame: str | None = None
@@ -48,6 +53,8 @@ class Recording:
     topics: dict[str, str] = field(default_factory=dict)  # role -> topic
     dropped: list[dict] = field(default_factory=list)
     messages: int = 0  # messages read
+    odom_msgs: list = field(default_factory=list)  # (stamp, xyz, quat) of the odometry topic
+    odometry_source: str | None = None  # "tf" (odom -> base in /tf) or "topic" (the odometry topic)
 
 
 def _fail(path: Path, topic: str | None, message: str, fix: str, index: int | None = None):
@@ -79,7 +86,10 @@ def choose_topics(path: Path, connections, roles: dict[str, str]) -> dict[str, s
         if found:
             out[role] = found[0]
     for name in ("/tf", "/tf_static"):
-        if name in by_topic and by_topic[name] == TF:
+        if name in by_topic and by_topic[name] not in TF_TYPES:
+            _fail(path, name, f"is {by_topic[name]}, not a tf message ({' or '.join(TF_TYPES)})",
+                  f"record tf as tf2_msgs/TFMessage on {name}")
+        if name in by_topic:
             out[name.strip("/")] = name
     return out
 
@@ -149,6 +159,34 @@ def _intrinsics(path: Path, topic: str, index: int, msg) -> Camera:
                   cy=float(k[5]), distortion=distortion)
 
 
+def _scan(rec: Recording, path: Path, topic: str, index: int, msg, scans: list) -> None:
+    """One LaserScan onto the recording's beam grid (the first scan's; `pipeline.rosbag.scans`)."""
+    n, inc = len(msg.ranges), float(msg.angle_increment)
+    if n < 2 or inc == 0 or not math.isfinite(inc) or not math.isfinite(float(msg.angle_min)):
+        _fail(path, topic, f"{n} beams with angle_min {msg.angle_min}, angle_increment {msg.angle_increment}",
+              "siteloc needs scans of at least 2 beams with a finite, non-zero angle_increment", index)
+    if not float(msg.range_max) > 0 or not math.isfinite(float(msg.range_max)):
+        _fail(path, topic, f"range_max is {msg.range_max}", "the laser driver must publish its finite range_max",
+              index)
+    ranges, grid = counter_clockwise(np.asarray(msg.ranges, dtype=np.float32), float(msg.angle_min), inc)
+    ranges = cleaned(ranges, float(msg.range_min), float(msg.range_max))
+    if rec.laser is None:
+        rec.laser, rec.laser_frame = {"angle_min": grid.angle_min, "angle_increment": grid.angle_increment,
+                                      "beams": grid.beams, "range_min": max(float(msg.range_min), 0.0),
+                                      "range_max": float(msg.range_max)}, msg.header.frame_id.lstrip("/")
+    first = Grid(rec.laser["angle_min"], rec.laser["angle_increment"], rec.laser["beams"])
+    if grid != first:
+        if not first.fits(grid):
+            _fail(path, topic, f"scan geometry changes: {grid.beams} beams from {math.degrees(grid.angle_min):.2f} "
+                  f"to {math.degrees(grid.angle_max):.2f} deg, the first scan has {first.beams} from "
+                  f"{math.degrees(first.angle_min):.2f} to {math.degrees(first.angle_max):.2f} deg",
+                  "one laser configuration per recording: split the recording where the driver was reconfigured",
+                  index)
+        ranges = resample(ranges, grid, first)
+        rec.resampled_scans += 1
+    scans.append(ranges)
+
+
 def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dict[str, float] | None = None,
                    tf_max_gap: float = 0.5, tolerance: float = 0.05, progress: bool = False) -> Recording:
     """Read a bag (see module docstring); raises InputError on anything siteloc cannot use."""
@@ -169,7 +207,7 @@ def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dic
         conns = [c for c in reader.connections if c.topic in wanted]
         counts = {t: 0 for t in wanted}
         last_stamp: dict[str, float] = {}
-        scans, scan_stamps, odom, sizes = [], [], [], []
+        scans, scan_stamps, sizes = [], [], []
         first_info: tuple[int, Camera] | None = None
         total = sum(c.msgcount for c in conns)
         msgs = messages(reader, path, conns)
@@ -215,7 +253,7 @@ def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dic
                 p, q = msg.pose.pose.position, msg.pose.pose.orientation
                 rec.odom_frame = rec.odom_frame or msg.header.frame_id.lstrip("/")
                 rec.base_frame = rec.base_frame or msg.child_frame_id.lstrip("/")
-                odom.append((stamp, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)))
+                rec.odom_msgs.append((stamp, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)))
             elif role == "camera_info":
                 k = _intrinsics(path, topic, index, msg)
                 if first_info is None:
@@ -230,26 +268,17 @@ def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dic
                 rec.frames.append((stamp, index, None, fmt))
                 sizes.append((index, size))
             elif role == "scan":
-                n = len(msg.ranges)
-                geo = {"angle_min": float(msg.angle_min), "angle_increment": float(msg.angle_increment),
-                       "beams": n, "range_max": float(msg.range_max)}
-                if rec.laser is None:
-                    if n < 2 or msg.angle_increment <= 0:
-                        _fail(path, topic, f"{n} beams with angle_increment {msg.angle_increment}",
-                              "siteloc needs counter-clockwise scans of at least 2 beams", index)
-                    rec.laser, rec.laser_frame = geo, msg.header.frame_id.lstrip("/")
-                elif geo["beams"] != rec.laser["beams"] or not np.isclose(
-                        geo["angle_min"], rec.laser["angle_min"], atol=1e-6):
-                    _fail(path, topic, f"scan geometry changes: {geo} after {rec.laser}",
-                          "one laser configuration per recording", index)
-                scans.append(np.asarray(msg.ranges, dtype=np.float32))
+                _scan(rec, path, topic, index, msg, scans)
                 scan_stamps.append(stamp)
     rec.messages = sum(counts.values())
     if scans:
         rec.ranges, rec.scan_stamps = np.stack(scans), np.asarray(scan_stamps)
-    if odom and rec.base_frame not in rec.tf.edges:  # odometry only on /odom, not in tf: it is the tf edge
-        for stamp, xyz, quat in odom:
+    if rec.odom_msgs and rec.tf.path(rec.odom_frame, rec.base_frame) is None:  # only on /odom: it is the edge
+        for stamp, xyz, quat in rec.odom_msgs:
             rec.tf.add(rec.odom_frame, rec.base_frame, stamp, xyz, quat, static=False)
+        rec.odometry_source = "topic"
+    elif rec.tf.edges:
+        rec.odometry_source = "tf"
     if rec.frames and rec.intrinsics is not None:
         k = rec.intrinsics
         for index, size in sizes:

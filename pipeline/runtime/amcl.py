@@ -74,6 +74,7 @@ class AdaptiveMCL:
         self.alpha = noise_alphas(cfg.motion)
         self.bin_theta = math.radians(cfg.kld.bin_theta_deg)
         self._odom: np.ndarray | None = None  # odometry at the last applied update
+        self._odom_now: np.ndarray | None = None  # the latest odometry reading, applied or not
         self._best = 1.0
         self._judged = False
         self._mode: np.ndarray | None = None  # the last measured belief's settled mode (`_note_mode`)
@@ -96,6 +97,7 @@ class AdaptiveMCL:
         self._low_updates = 0
         self._good_updates = 0
         self._force = True
+        self._odom = self._odom_now  # the new particles are where the robot is now, not at the last update
         self._estimate = estimate_pose(self.particles, self.weights, self.cfg.kld.bin_xy, self.bin_theta)
 
     def init_uniform(self, n: int | None = None) -> None:
@@ -188,6 +190,7 @@ class AdaptiveMCL:
             return self._result(False)
         if self._odom is None:
             self._odom = odom
+        self._odom_now = odom
         rot1, trans, rot2 = odometry_delta(self._odom, odom)
         turn = abs(float(wrap_angle(rot1 + rot2)))
         moved = trans >= self.cfg.update_min_d or turn >= math.radians(self.cfg.update_min_a_deg)
@@ -354,6 +357,16 @@ class AdaptiveMCL:
             self._tracked += 1
 
     def _result(self, updated: bool) -> StepResult:
+        """The estimate at the latest odometry: between updates the last update's pose carried by the
+        odometry since (what nav2 publishes as map -> odom composed with odom -> base)."""
         e = self._estimate
-        return StepResult(e.pose.copy(), e.covariance.copy(), self.state, len(self.particles), updated, self._best,
+        pose = e.pose.copy()
+        if not updated and self._odom is not None and self._odom_now is not None:
+            c0, s0 = math.cos(self._odom[2]), math.sin(self._odom[2])
+            dx, dy = self._odom_now[0] - self._odom[0], self._odom_now[1] - self._odom[1]
+            lx, ly = c0 * dx + s0 * dy, -s0 * dx + c0 * dy  # odom_at_update^-1 * odom_now, in the base frame
+            c, s = math.cos(pose[2]), math.sin(pose[2])
+            pose = np.array([pose[0] + c * lx - s * ly, pose[1] + s * lx + c * ly,
+                             float(wrap_angle(pose[2] + self._odom_now[2] - self._odom[2]))])
+        return StepResult(pose, e.covariance.copy(), self.state, len(self.particles), updated, self._best,
                           self.w_fast, self.w_slow, e.clusters, e.cluster_weight)

@@ -248,7 +248,8 @@ def test_scan_geometry_changing(tiny, tmp_path):
         return dataclasses.replace(msg, ranges=np.asarray(msg.ranges)[:45]) if k == 4 else msg
 
     bags = broken(tiny, tmp_path, only(SCAN, fewer))
-    fails(tmp_path, bags, f"{SCAN} message 4", "scan geometry changes", "'beams': 45", "'beams': 91")
+    fails(tmp_path, bags, f"{SCAN} message 4", "scan geometry changes", "45 beams from -135.00 to -3.00 deg",
+          "the first scan has 91")
 
 
 # --- tf -------------------------------------------------------------------------------------------------------
@@ -266,13 +267,27 @@ def _without(pred):
     return edit
 
 
-def test_tf_without_map_to_odom(tiny, tmp_path):
+def test_tf_without_map_to_odom_gives_a_run_without_reference(tiny, tmp_path):
+    """A drive with no localization in it (what a robot records): its run has odometry and scans, no ground
+    truth, and the report says so; its frames have no pose, so they make no stops."""
+    import json
+
+    from pipeline.errors import Problems
+    from pipeline.io.capture_runs import read_run
+
     bags = broken(tiny, tmp_path, _without(lambda tr: tr.header.frame_id == "map"))
-    fails(tmp_path, bags, "'map' and 'base_link' are not connected", "map -> odom")
+    out = run_ingest_bag(CFG, inputs={"bags": bags}, outputs={"out": tmp_path / "out"}, progress=False)
+    rep = json.loads((out / "bag_report.json").read_text())["recordings"]
+    assert rep["query_a"]["reference"] is False and rep["capture"]["reference"] is True
+    assert rep["query_a"]["dropped"]["frames_without_pose"] == rep["query_a"]["frames"] > 0
+    assert "no reference (no map frame in tf)" in (out / "bag_report.md").read_text()
+    run = read_run(out / "runs" / "query_a", out, None, None, Problems())
+    assert run.gt.shape[0] == rep["query_a"]["scans"] and np.isnan(run.gt).all()
+    assert np.isfinite(run.odom).all()
 
 
 def test_tf_with_map_attached_elsewhere(tiny, tmp_path):
-    """map is in tf, but above another frame: the two are still not connected, and the tree is shown."""
+    """A reference frame named with --frame must connect to the base; the tree is shown."""
 
     def elsewhere(topic, msg, t, w):
         if topic != "/tf":
@@ -282,7 +297,8 @@ def test_tf_with_map_attached_elsewhere(tiny, tmp_path):
         return [(topic, w.msgs.tf(trs), t)]
 
     bags = broken(tiny, tmp_path, elsewhere)
-    fails(tmp_path, bags, "'map' and 'base_link' are not connected", "map -> odom_old", "odom -> base_link")
+    fails(tmp_path, bags, "--frame map=map: not connected to 'base_link'", "map -> odom_old", "odom -> base_link",
+          options=BagOptions(frames={"map": "map"}))
 
 
 def test_camera_frame_missing_from_tf_static(tiny, tmp_path):
