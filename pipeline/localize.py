@@ -62,10 +62,13 @@ def _at_step(run, t: int, err: RuntimeInputError, what: str = "") -> RuntimeInpu
     return RuntimeInputError(f"run {run.name}, step {t} of {len(run)}{what}: {err}")
 
 
-def replay_one(run, lmap, fcfg, mount, init: str, trial: int, candidate_weights=None) -> dict:
+def replay_one(run, lmap, fcfg, mount, init: str, trial: int, candidate_weights=None, start_pose=None,
+               keep_cloud: int = 0) -> dict:
     """Replay `run` once; returns per-step arrays and the final particle set. With `candidates`, a
     simulated camera proposes len(candidate_weights) ranked poses at every step and the runtime's camera
-    path (`CameraPath`) uses them as retrieval's, weighted `candidate_weights` (retrieval.candidate_weights)."""
+    path (`CameraPath`) uses them as retrieval's, weighted `candidate_weights` (retrieval.candidate_weights).
+    `pose` starts at `start_pose` (else the first ground-truth pose); `keep_cloud` particles per step are
+    kept (`cloud`) for the replay bag."""
     from pipeline.evaluation.replay import simulated_candidates
     from pipeline.runtime import inputs
     from pipeline.runtime.amcl import AdaptiveMCL
@@ -81,9 +84,10 @@ def replay_one(run, lmap, fcfg, mount, init: str, trial: int, candidate_weights=
     camera = None
     if init == "pose":
         try:
-            f.init_pose(run.gt[0])
+            f.init_pose(run.gt[0] if start_pose is None else start_pose)
         except RuntimeInputError as err:
-            raise _at_step(run, 0, err, " (its ground-truth pose, --init pose)") from None
+            what = " (its ground-truth pose, --init pose)" if start_pose is None else " (--pose)"
+            raise _at_step(run, 0, err, what) from None
     elif init == "candidates":
         # The camera's ranked poses at step t: the truth with noise among free-space decoys, at a random rank.
         camera = CameraPath(f, cfg, candidate_weights, range_max=run.range_max, base_from_laser=mount,
@@ -95,7 +99,7 @@ def replay_one(run, lmap, fcfg, mount, init: str, trial: int, candidate_weights=
     if camera is not None:
         camera.verifier  # noqa: B018 - its range table is built before timing anything
     T = len(run)
-    out = {k: [] for k in ("pose", "cov", "state", "particles", "updated", "best", "ms")}
+    out = {k: [] for k in ("pose", "cov", "state", "particles", "updated", "best", "ms", "cloud")}
     odom = None
     for t in range(T):
         try:  # what the bundle's Localizer checks (its update); the run's own laser sets the beam count
@@ -113,40 +117,53 @@ def replay_one(run, lmap, fcfg, mount, init: str, trial: int, candidate_weights=
         out["updated"].append(res.updated)
         out["best"].append(res.best_likelihood)
         out["ms"].append(ms)
-    out = {k: (v if k == "state" else np.array(v)) for k, v in out.items()}
+        out["cloud"].append(cloud_of(f.particles, keep_cloud))
+    out = {k: (v if k in ("state", "cloud") else np.array(v)) for k, v in out.items()}
     out["final_particles"] = f.particles.copy()
     return out
 
 
-def replay_bundle(run, loc, data: Path, trial: int) -> dict:
-    """Replay `run` through a bundle's Localizer with the run's camera frames (in `data`)."""
-    if run.image_ids is None:
-        raise InputError(f"{run.name}: no camera frames", [Problem(run.name, "--init retrieval needs image_id per step",
-                                                                   fix="use a run recorded with a camera")])
+def cloud_of(particles: np.ndarray, n: int) -> np.ndarray | None:
+    """At most n particles, evenly strided (float32), for the replay bag; None when n is 0."""
+    if n <= 0:
+        return None
+    step = max(1, len(particles) // n)
+    return particles[::step][:n].astype(np.float32)
+
+
+def replay_bundle(run, loc, data: Path, trial: int, keep_cloud: int = 0) -> dict:
+    """Replay `run` through a bundle's Localizer with the run's camera frames (in `data`), if it has any:
+    without, the bundle's filter runs on the laser alone. Scans keep the run's own laser geometry."""
+    from pipeline.runtime.sensor import Scan
+
     loc.reset(seed=loc.base_seed + trial)  # trial t: seed + t, whatever was replayed before
-    out = {k: [] for k in ("pose", "cov", "state", "particles", "updated", "best", "ms")}
+    out = {k: [] for k in ("pose", "cov", "state", "particles", "updated", "best", "ms", "cloud", "candidates")}
     seeded = None  # the candidates the filter started from (x, y, theta, weight)
+    images = run.image_ids or (None,) * len(run)
     for t in range(len(run)):
-        image = data / run.image_ids[t] if run.image_ids[t] else None
+        image = data / images[t] if images[t] else None
+        scan = Scan(run.ranges[t], run.angle_min, run.angle_increment, run.range_max)
         t0 = time.perf_counter()
         try:
-            e = loc.update(run.odom[t], run.ranges[t], image=image)
+            e = loc.update(run.odom[t], scan, image=image)
         except RuntimeInputError as err:
             raise _at_step(run, t, err) from None
         out["ms"].append((time.perf_counter() - t0) * 1000.0)
         if seeded is None and e.candidates is not None:
             seeded = e.candidates
         for key, value in (("pose", e.pose), ("cov", e.covariance), ("state", e.state), ("particles", e.n_particles),
-                           ("updated", e.updated), ("best", e.best_likelihood)):
+                           ("updated", e.updated), ("best", e.best_likelihood), ("candidates", e.candidates)):
             out[key].append(value)
-    out = {k: (v if k == "state" else np.array(v)) for k, v in out.items()}
+        out["cloud"].append(cloud_of(loc.filter.particles, keep_cloud))
+    out = {k: (v if k in ("state", "cloud", "candidates") else np.array(v)) for k, v in out.items()}
     out["final_particles"] = loc.filter.particles.copy()
     out["seed_candidates"] = seeded
     return out
 
 
 def estimate_columns(run, trial: int, rep: dict, err: np.ndarray, err_t: np.ndarray) -> dict:
-    """The columns of an `estimates` table for one replay (`replay_one` / `replay_bundle` output)."""
+    """The columns of an `estimates` table for one replay (`replay_one` / `replay_bundle` output, with the
+    quality of `quality_of`)."""
     n = len(run)
     pose = rep["pose"]
     gt = run.gt if run.gt is not None else np.full((n, 3), np.nan)
@@ -154,8 +171,53 @@ def estimate_columns(run, trial: int, rep: dict, err: np.ndarray, err_t: np.ndar
             "theta": pose[:, 2], "cov_xx": rep["cov"][:, 0, 0], "cov_xy": rep["cov"][:, 0, 1],
             "cov_yy": rep["cov"][:, 1, 1], "cov_tt": rep["cov"][:, 2, 2], "state": rep["state"],
             "particles": rep["particles"], "updated": rep["updated"], "best_likelihood": rep["best"],
-            "update_ms": rep["ms"], "gt_x": gt[:, 0], "gt_y": gt[:, 1], "gt_theta": gt[:, 2],
+            "update_ms": rep["ms"], "agreement": [None if np.isnan(v) else float(v) for v in rep["agreement"]],
+            "spread_m": rep["spread"], "gt_x": gt[:, 0], "gt_y": gt[:, 1], "gt_theta": gt[:, 2],
             "error_xy": err, "error_theta": err_t, "kidnapped": run.kidnapped}
+
+
+def quality_of(rep: dict, run, lmap, mount, cfg: SitelocConfig) -> dict:
+    """What the robot itself can tell of a replay (`pipeline.runtime.quality`): per step the share of beams the
+    map explains at the estimate and the particle spread (added to `rep`), per run the rule's verdict."""
+    from pipeline.runtime import quality
+
+    rule = quality.QualityRule()
+    rep["agreement"] = quality.beam_agreement(lmap, rep["pose"], run.ranges, run.angle_min, run.angle_increment,
+                                              run.range_max, mount, rule.tolerance_m,
+                                              range_min=cfg.filter.sensor.range_min)
+    rep["spread"] = quality.spread_m(rep["cov"][:, 0, 0], rep["cov"][:, 0, 1], rep["cov"][:, 1, 1])
+    verdict = quality.assess(rep["agreement"], rep["spread"], rep["state"], rule, kidnapped=run.kidnapped)
+    verdict.pop("good_steps")
+    return verdict
+
+
+def _grid_frame(occ):
+    """(the map as an axis-aligned grid, map_from_grid (3,)): the filter works on the grid; a map.yaml whose
+    origin has a yaw is the same grid turned in the map frame, so poses are turned in and out around it."""
+    from dataclasses import replace
+
+    pose = np.array([occ.origin_x, occ.origin_y, occ.origin_yaw])
+    if not occ.origin_yaw:
+        return occ, None
+    return replace(occ, origin_x=0.0, origin_y=0.0, origin_yaw=0.0), pose
+
+
+def _turned(map_from_grid, poses: np.ndarray | None, inverse: bool = False) -> np.ndarray | None:
+    """Poses (N, 3) from the grid frame to the map frame (`inverse`: map to grid); unchanged without a turn."""
+    if map_from_grid is None or poses is None:
+        return poses
+    from pipeline.rosbag.transforms import compose2d, inverse2d
+
+    a = map_from_grid[None] if not inverse else inverse2d(map_from_grid[None])
+    return compose2d(np.repeat(a, len(poses), 0), np.asarray(poses, dtype=np.float64).reshape(-1, 3))
+
+
+def _turned_cov(map_from_grid, cov: np.ndarray) -> np.ndarray:
+    if map_from_grid is None:
+        return cov
+    c, s = np.cos(map_from_grid[2]), np.sin(map_from_grid[2])
+    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return r @ cov @ r.T
 
 
 def run_localize(
@@ -169,11 +231,18 @@ def run_localize(
     kidnap_at: list[int] | None = None,
     kidnap_min_jump_m: float = 10.0,
     bundle: Path | None = None,
+    start_pose: tuple[float, float, float] | None = None,
     force: bool = False,
     progress: bool = True,
+    keep_cloud: int = 0,
+    on_replay=None,
 ) -> Path:
+    """`start_pose` (map frame, radians) starts `pose` there instead of at the ground truth. `on_replay(run,
+    rep, tmp)` is called with trial 0 of each run (poses in the map frame, `cloud`: `keep_cloud` particles per
+    step) while the output is being written in `tmp`."""
     from pipeline.evaluation import plots
     from pipeline.evaluation.metrics import replay_metrics
+    from pipeline.evaluation.overview import overview_figure
     from pipeline.evaluation.replay import load_run, teleport
     from pipeline.evaluation.trajectories import evo_metrics, step_stamps, write_tum
     from pipeline.progress import progress_bar
@@ -182,11 +251,13 @@ def run_localize(
 
     if init not in INITS:
         raise ValueError(f"init must be one of {INITS}, got '{init}'")
-    if (init == "retrieval") != (bundle is not None):
-        from pipeline.errors import ConfigError
+    from pipeline.errors import ConfigError
 
+    if (init == "retrieval") != (bundle is not None):
         raise ConfigError("--init retrieval and --bundle go together: the bundle's detector and database "
                           "turn the runs' camera frames into candidate poses")
+    if start_pose is not None and init != "pose":
+        raise ConfigError("--pose goes with --init pose")
     check_output(Path(outputs["out"]), force=force, inputs=[*inputs.values(), bundle])
     loc = None
     if bundle is not None:
@@ -194,15 +265,28 @@ def run_localize(
 
         loc = Localizer.from_bundle(Path(bundle), seed=cfg.filter.seed)
     data, out = Path(inputs["data"]), Path(outputs["out"])
-    occ = read_map(data / "map.yaml")
+    occ_map = read_map(data / "map.yaml")
+    occ, map_from_grid = _grid_frame(occ_map)
     lmap = LaserMap.from_occupancy(occ, cfg.filter.sensor.max_distance)
     mount = _mount(data)
     paths = _run_paths(data, runs)
     loaded = [load_run(p) for p in paths]
+    notes = []
     for r in loaded:
-        if r.gt is None and (init != "uniform" or kidnap_at):
-            raise InputError(f"{r.name}: no ground truth", [Problem(r.name, f"--init {init} and kidnappings need it",
-                                                                    fix="use --init uniform without --kidnap-at")])
+        if r.gt is None and ((init != "uniform" and start_pose is None and init != "retrieval") or kidnap_at):
+            raise InputError(f"{r.name}: no ground truth", [Problem(
+                r.name, f"--init {init} and kidnappings need it", fix="use --init uniform without --kidnap-at, "
+                "or --init pose --pose X,Y,THETA to start at a pose you know")])
+        start = None if r.gt is None else _turned(map_from_grid, r.gt[:1], inverse=True)[0]
+        if start is not None and not lmap.known(start[0], start[1]):
+            where = "off the map" if lmap.cell_of(start[0], start[1]) is None else "in unknown space"
+            raise InputError(f"{r.name}: the recording starts outside the map", [Problem(
+                r.name, f"its reference puts the robot at ({r.gt[0, 0]:.2f}, {r.gt[0, 1]:.2f}) m at the first step, "
+                f"{where}", fix="use the map of the place the robot drove in (its map.yaml and origin), or cut the "
+                "recording where the robot enters the map")])
+        if loc is not None and not any(r.image_ids or ()):
+            notes.append(f"{r.name}: no camera frames; the bundle's filter runs on the laser alone")
+    grid_start = None if start_pose is None else _turned(map_from_grid, np.asarray([start_pose]), inverse=True)[0]
     rows: dict[str, list] = {f.name: [] for f in tables.ESTIMATES}
     per_run: dict[str, list[dict]] = {}
     with atomic_dir(out, force=force, inputs=[*inputs.values(), bundle]) as tmp:
@@ -210,10 +294,15 @@ def run_localize(
         for run, trial in progress_bar(jobs, desc="replaying", unit="replay", enabled=progress):
             if kidnap_at:
                 run = teleport(run, kidnap_at, kidnap_min_jump_m, seed=cfg.filter.seed + 1000 * trial)
-            rep = (replay_bundle(run, loc, data, trial) if loc is not None
-                   else replay_one(run, lmap, cfg.filter, mount, init, trial,
-                                     candidate_weights=cfg.retrieval.candidate_weights))
-            pose = rep["pose"]
+            grid_run = run if map_from_grid is None else _with_gt(run, _turned(map_from_grid, run.gt, inverse=True))
+            rep = (replay_bundle(grid_run, loc, data, trial, keep_cloud) if loc is not None
+                   else replay_one(grid_run, lmap, cfg.filter, mount, init, trial,
+                                     candidate_weights=cfg.retrieval.candidate_weights, start_pose=grid_start,
+                                     keep_cloud=keep_cloud))
+            quality = quality_of(rep, grid_run, lmap, mount, cfg)
+            grid_pose = rep["pose"]
+            rep["pose"] = pose = _turned(map_from_grid, grid_pose)
+            rep["cov"] = _turned_cov(map_from_grid, rep["cov"])
             kid = np.nonzero(run.kidnapped)[0].tolist()
             stamps = step_stamps(run.t, len(run))
             write_tum(tmp / "trajectories" / f"{run.name}_trial{trial}.tum", pose, stamps)
@@ -229,6 +318,7 @@ def run_localize(
                 err = err_t = np.full(len(run), np.nan)
                 ms = rep["ms"][rep["updated"]]
                 m = {"steps": len(run), "update_ms_mean": round(float(np.mean(ms)), 4) if len(ms) else None}
+            m["quality"] = quality
             per_run.setdefault(run.name, []).append({"trial": trial, **m})
             for k, v in estimate_columns(run, trial, rep, err, err_t).items():
                 rows[k].extend(list(v))
@@ -237,11 +327,18 @@ def run_localize(
                 if run.gt is not None:
                     plots.replay_figure(tmp / "plots" / f"{run.name}_error.png", title, err, rep["state"],
                                         rep["particles"], kid)
-                plots.trajectory_figure(tmp / "plots" / f"{run.name}_map.png", occ, run.gt, pose,
+                plots.trajectory_figure(tmp / "plots" / f"{run.name}_map.png", occ, grid_run.gt, grid_pose,
                                         rep["final_particles"], title)
+                conv = m.get("converged_step") if run.gt is not None else quality["converged_step"]
+                lost = m.get("lost_track_steps", []) if run.gt is not None else quality["lost_steps"]
+                overview_figure(tmp / "plots" / f"{run.name}_overview.png", occ, grid_pose, rep["state"],
+                                gt=grid_run.gt, converged_step=conv, lost_steps=lost, kidnapped_steps=kid,
+                                title=f"{title}" + ("" if run.gt is not None else " (no reference: quality rule)"))
+                if on_replay is not None:
+                    on_replay(run, rep, tmp)
         tables.write_table(tmp / "estimates.parquet", tables.to_table("estimates", rows), "estimates",
                            metadata={"init": init, "method": cfg.filter.method})
-        if any(v is not None for v in rows["error_xy"]):
+        if np.isfinite(np.array(rows["error_xy"], dtype=np.float64)).any():
             errs = np.array(rows["error_xy"], dtype=np.float64)
             run_col = np.array(rows["run"])
             plots.error_cdf_figure(tmp / "plots" / "error_cdf.png",
@@ -252,10 +349,17 @@ def run_localize(
                               "free-space decoys, random rank, every step, through the camera path")
                if init == "candidates" else
                (f"image retrieval with the bundle {bundle}" if loc is not None else None),
-               "trials": trials, "kidnap_at": kidnap_at or [], "summary": summary, "runs": per_run}
+               "start_pose": None if start_pose is None else [float(v) for v in start_pose],
+               "trials": trials, "kidnap_at": kidnap_at or [], "notes": notes, "summary": summary, "runs": per_run}
         write_text_atomic(tmp / "metrics.json", json.dumps(doc, indent=2) + "\n")
         write_effective_config(cfg, tmp, stage="localize", inputs={"data": data})
     return out
+
+
+def _with_gt(run, gt):
+    from dataclasses import replace
+
+    return replace(run, gt=gt)
 
 
 def _summary(per_run: dict[str, list[dict]]) -> dict:

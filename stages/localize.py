@@ -18,7 +18,8 @@ DATA is a directory written by `siteloc ingest` or `siteloc ingest-log`: map.yam
 filter.seed + t). The filter starts as --init says:
 
   uniform     global localization: particles over the whole free space
-  pose        at the first ground-truth pose (tracking)
+  pose        at a known pose (tracking): --pose X,Y,THETA (metres, metres, degrees, in the map frame:
+              what nav2's "2D Pose Estimate" sets), else the first ground-truth pose
   candidates  a simulated camera: at every step four ranked poses, the true pose with 0.5 m / 10 deg
               noise among random free-space decoys at a random rank, handed to the runtime's camera
               path as retrieval's would be (seed, inject while not tracking, weigh against a tracked
@@ -34,7 +35,8 @@ The filter's settings are the `filter` section of the config: method (amcl, kld,
 particles, sensor model (likelihood_field or beam), kidnap rule. Override them with --set, e.g.
 --set filter.sensor.model=beam --set filter.max_particles=10000.
 
-Writes into --out: estimates.parquet (per step: pose, covariance, state, particles, error), metrics.json
+Writes into --out: estimates.parquet (per step: pose, covariance, state, particles, the share of beams the
+map explains at the estimate and the particle spread, error where there is ground truth), metrics.json
 (converged step, the steps where it lost track, share of steps within 0.5 m after convergence, median /
 mean / p90 error after convergence and median over all steps, recovery steps per kidnapping, particles,
 ms per update, evo's APE / RPE; a summary over trials), trajectories/ (estimates and ground truth as TUM
@@ -42,17 +44,23 @@ files, for `evo_ape tum trajectories/RUN_groundtruth.tum trajectories/RUN_trial0
 and particles per step, the trajectory and particles on the map, error CDF) and config.yaml. A trial
 counts as converged when the error settled under 0.5 m for 10 steps and never afterwards stayed at
 0.5 m or more for 10 steps (kidnappings aside); one that did is reported as "lost track at" that step.
+Without ground truth (a robot's own recording) the verdict is what the robot can know: converged when
+for 20 steps at least 80 % of the beams end within 0.15 m of a wall of the map, the particles' spread
+stays under 0.5 m and the filter is tracking, and lost when that fails for 20 steps afterwards
+(docs/localize-your-recording.md); plots/RUN_overview.png shows each run on the map, coloured by state.
 
 --bag replays one ROS recording (ROS 1 .bag, ROS 2 folder, .mcap / .db3) as the robot would feed the runtime:
-a step per scan with the odometry and, as ground truth when tf has it, map -> base_link at the scan's
-stamp, and the camera frame nearest in time (what `siteloc ingest-bag` makes of it). --write-bag OUT.mcap
-writes the estimates as geometry_msgs/PoseWithCovarianceStamped on /siteloc/pose and the map -> odom
-transform on /tf, stamped like the scans, to play beside the recording in RViz or Foxglove.
+a step per scan with the odometry (odom -> base in /tf, else /odom), and, as ground truth when tf has it,
+map -> base_link at the scan's stamp, and the camera frame nearest in time (what `siteloc ingest-bag` makes
+of it). A laser-only recording with no map frame (what a robot records) works: --map gives the map.
+--write-bag OUT.mcap (or .bag for ROS 1) writes the replay to watch in Foxglove or RViz: the map, the scan,
+the particles, the estimate with its covariance, map -> odom, the filter's state and, with --bundle, the
+retrieved candidates and the camera frame, stamped like the scans.
 
 Example: siteloc localize data/carmen/intel-corrected --out data/localize/intel --init uniform --trials 10
 
-Example: siteloc localize --bag bags/query_00 --bundle bundles/office-v1 --out data/localize/bag
---write-bag data/localize/bag/poses.mcap
+Example: siteloc localize --bag take2 --map map.yaml --init pose --pose 2.5,4.0,90 --out out/take2
+--write-bag out/take2/replay.mcap
 """
 
 
@@ -79,6 +87,8 @@ def localize(
         list[str] | None, typer.Option("--run", "-r", help="Replay only this run (repeatable) \\[default: all].")
     ] = None,
     init: Annotated[Init, typer.Option("--init", help="How the filter starts (see above).")] = Init.uniform,
+    pose: Annotated[str | None, typer.Option("--pose", help="With --init pose: X,Y,THETA (m, m, degrees) in the map "
+                                             "frame.", show_default=False)] = None,
     trials: Annotated[int, typer.Option("--trials", min=1, help="Replays per run, with seeds seed..seed+N-1.")] = 1,
     kidnap_at: Annotated[
         list[int] | None, typer.Option("--kidnap-at", help="Teleport the robot at this step (repeatable).")
@@ -108,8 +118,12 @@ def localize(
             raise ConfigError("give either DATA (a dataset directory) or --bag (a recording), not both or neither")
         if write_bag is not None and bag is None:
             raise ConfigError("--write-bag goes with --bag")
+        start = _pose(pose) if pose is not None else None
+        if start is not None and init != Init.pose.value:
+            raise ConfigError("--pose goes with --init pose")
         cfg = load(config, set_)
-        kw = dict(init=init, trials=trials, kidnap_at=kidnap_at, kidnap_min_jump_m=kidnap_min_jump, force=force)
+        kw = dict(init=init, trials=trials, kidnap_at=kidnap_at, kidnap_min_jump_m=kidnap_min_jump, force=force,
+                  start_pose=start)
         if bag is not None:
             from pipeline.rosbag.replay import run_localize_bag
 
@@ -123,13 +137,18 @@ def localize(
 
         table = Table(title=f"siteloc localize: init {init}, {doc['method']}, {doc['sensor_model']}",
                       caption="converged: settled within 0.5 m and never lost track afterwards; lost track: "
-                              "settled, then 0.5 m or more for 10 steps (kidnappings aside)")
+                              "settled, then 0.5 m or more for 10 steps (kidnappings aside). No reference: "
+                              "converged when 80 % of the beams meet the map, spread < 0.5 m, tracking, for 20 steps")
         for col in ("run", "converged", "lost track at", "conv. step", "within 0.5 m", "median err (m)",
                     "median err, all (m)", "APE rmse, evo (m)", "kidnaps recovered", "recovery steps", "ms/update"):
             table.add_column(col)
         for name, s in doc["summary"].items():
             if "converged" not in s:
-                table.add_row(name, *["-"] * 10)
+                q = doc["runs"][name][0]["quality"]
+                conv = "yes" if q["converged"] else "lost" if q["lost_steps"] else "no"
+                table.add_row(name, f"{conv} (no reference)", ", ".join(map(str, q["lost_steps"])) or "-",
+                              "-" if q["converged_step"] is None else str(q["converged_step"]), "-", "-", "-", "-",
+                              "-", "-", "-" if s.get("update_ms_mean") is None else f"{s['update_ms_mean']:.1f}")
                 continue
 
             def f(v, fmt="{:.3f}"):
@@ -141,4 +160,23 @@ def localize(
                           f(s["error_median_all_m"]), f(s["ape_rmse_m_median"]), f"{s['recovered']}/{s['kidnaps']}",
                           f(s["recovery_steps_median"], "{:.0f}"), f(s["update_ms_mean"], "{:.1f}"))
         print_tables(table, min_width=150)
+        for note in doc.get("notes", []):
+            typer.echo(f"note: {note}", err=True)
         echo_path("output", result)
+
+
+def _pose(text: str) -> tuple[float, float, float]:
+    """--pose X,Y,THETA (m, m, degrees) as x, y, theta (radians)."""
+    import math
+
+    from pipeline.errors import ConfigError
+
+    parts = text.replace(" ", "").split(",")
+    try:
+        x, y, th = (float(v) for v in parts)
+    except ValueError:
+        raise ConfigError(f"--pose {text!r}: expected X,Y,THETA (metres, metres, degrees), e.g. --pose 2.5,4.0,90") \
+            from None
+    if not all(math.isfinite(v) for v in (x, y, th)):
+        raise ConfigError(f"--pose {text!r}: X, Y and THETA must be finite numbers")
+    return x, y, math.radians(th)

@@ -90,6 +90,8 @@ ESTIMATES = pa.schema(
         pa.field("updated", pa.bool_(), nullable=False),
         pa.field("best_likelihood", pa.float32(), nullable=False),
         pa.field("update_ms", pa.float32(), nullable=False),
+        pa.field("agreement", pa.float32()),
+        pa.field("spread_m", pa.float32(), nullable=False),
         pa.field("gt_x", pa.float64()),
         pa.field("gt_y", pa.float64()),
         pa.field("gt_theta", pa.float64()),

@@ -197,7 +197,7 @@ def _odometry_report(rec: Recording, odom_f: str, base: str, stamps: np.ndarray)
 def extract_drive(rec: Recording, site_offsets, opts: BagOptions, tol_deg: float, use_stops: bool) -> Drive:
     m, odom_f, base = _frames(rec, opts)
     level_laser(rec, base)
-    drive = Drive(rec, report={"reference": m is not None})
+    drive = Drive(rec, report={"reference": m is not None, "frames": {"map": m, "odom": odom_f, "base": base}})
     cam_mount = _mount(rec, base, rec.camera_frame, "camera")
     dropped = {"duplicate_stamps": len(rec.dropped)}
     if rec.frames and m is None:

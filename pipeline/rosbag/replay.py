@@ -2,13 +2,15 @@
 
 The recording becomes the dataset `localize` replays (map, site.yaml, one run of a step per scan with
 the frame nearest in time: the same steps `ingest-bag` makes), in a temporary folder; the estimates
-are `localize`'s own. `write_estimates_bag` writes them as a robot's localization would publish
-them: geometry_msgs/PoseWithCovarianceStamped on /siteloc/pose and the map -> odom transform on /tf,
-stamped with the scans' own stamps so they play beside the recording.
+are `localize`'s own. With `write_bag`, trial 0 becomes a recording to watch in Foxglove or RViz
+(`pipeline.rosbag.replay_bag`: the map, the scan, the particles, the estimate with its covariance,
+map -> odom, the state and, with a bundle, the candidates and the camera frame), stamped with the
+scans' own stamps so it plays alone or beside the recording.
 """
 
 from __future__ import annotations
 
+import json
 import shutil
 import tempfile
 from pathlib import Path
@@ -17,10 +19,23 @@ import numpy as np
 
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem
-from pipeline.rosbag.ingest import BagOptions, Drive, extract_drive, kept_frames, laser_of, map_of, site_of
+from pipeline.io.atomic import check_output, write_text_atomic
+from pipeline.rosbag.ingest import (
+    BagOptions,
+    Drive,
+    extract_drive,
+    kept_frames,
+    laser_of,
+    map_of,
+    notes_text,
+    recording_notes,
+    site_of,
+)
 from pipeline.rosbag.read import load_frames, read_recording
+from pipeline.rosbag.replay_bag import write_replay_bag
 
-POSE_TOPIC = "/siteloc/pose"
+#: Particles per step the replay recording shows (`/siteloc/particles`).
+CLOUD = 200
 
 
 def bag_dataset(bag: Path, root: Path, opts: BagOptions, cfg: SitelocConfig, map_yaml: Path | None = None) -> Drive:
@@ -66,62 +81,76 @@ def bag_dataset(bag: Path, root: Path, opts: BagOptions, cfg: SitelocConfig, map
 
 
 def run_localize_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Path], options: BagOptions | None = None,
-                     write_bag: Path | None = None, progress: bool = True, **localize_kw) -> Path:
-    """`localize` on `inputs['bag']` (with `inputs['bundle']` for retrieval); optionally the estimates as a bag."""
+                     write_bag: Path | None = None, progress: bool = True, cloud: int = CLOUD, **localize_kw) -> Path:
+    """`localize` on `inputs['bag']` (with `inputs['bundle']` for retrieval, `inputs['map']` for a map.yaml);
+    optionally the replay as a recording to watch (`write_bag`: .mcap, or .bag for ROS 1). The replay
+    recording goes through the output guard as `--out` does: never onto, into or around an input, never
+    over an existing file without `force`; it is written inside the output and moved out when complete."""
     from pipeline.localize import run_localize
 
     opts = options or BagOptions()
-    if write_bag is not None and Path(write_bag).exists() and not localize_kw.get("force"):
-        from pipeline.errors import OutputExistsError
+    out = Path(outputs["out"])
+    force = bool(localize_kw.get("force"))
+    read = [v for v in inputs.values() if v is not None]
+    inside = None
+    if write_bag is not None:
+        write_bag = Path(write_bag)
+        if write_bag.suffix not in (".mcap", ".bag"):
+            from pipeline.errors import ConfigError
 
-        raise OutputExistsError(Path(write_bag))
+            raise ConfigError(f"--write-bag {write_bag}: name a .mcap file (ROS 2, Foxglove) or a .bag file (ROS 1)")
+        check_output(write_bag, force=force, inputs=[*read, out] if not _within(write_bag, out) else read)
+        if write_bag.is_dir():
+            from pipeline.errors import ConfigError
+
+            raise ConfigError(f"--write-bag {write_bag}: a folder is there; name a file")
+        inside = write_bag.resolve().relative_to(out.resolve()) if _within(write_bag, out) else None
     with tempfile.TemporaryDirectory(prefix="siteloc-bag-") as tmp:
         drive = bag_dataset(Path(inputs["bag"]), Path(tmp), opts, cfg, inputs.get("map"))
-        out = run_localize(cfg, inputs={"data": Path(tmp)}, outputs=outputs, progress=progress,
-                           bundle=inputs.get("bundle"), **localize_kw)
-    write_effective_config(cfg, out, stage="localize", inputs={k: v for k, v in inputs.items() if v is not None})
-    if write_bag is not None:
-        write_estimates_bag(out / "estimates.parquet", drive, Path(write_bag), force=bool(localize_kw.get("force")))
-    return out
+        staged = Path("replay" + (write_bag.suffix if write_bag is not None else ".mcap"))
+
+        def on_replay(run, rep, work: Path) -> None:
+            if write_bag is not None:
+                write_replay_bag(work / (inside or staged), replay_stream(drive, rep, Path(tmp)))
+
+        result = run_localize(cfg, inputs={"data": Path(tmp)}, outputs=outputs, progress=progress,
+                              bundle=inputs.get("bundle"), keep_cloud=cloud if write_bag is not None else 0,
+                              on_replay=on_replay, **localize_kw)
+        notes = notes_text(recording_notes(drive))
+        if notes:
+            doc = json.loads((result / "metrics.json").read_text())
+            doc["notes"] = notes + doc.get("notes", [])
+            write_text_atomic(result / "metrics.json", json.dumps(doc, indent=2) + "\n")
+    write_effective_config(cfg, result, stage="localize", inputs={k: v for k, v in inputs.items() if v is not None})
+    if write_bag is not None and inside is None:
+        write_bag.parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(result / staged, write_bag.parent / f".{write_bag.name}.tmp")
+        (write_bag.parent / f".{write_bag.name}.tmp").replace(write_bag)
+    return result
 
 
-def write_estimates_bag(estimates: Path, drive: Drive, dst: Path, force: bool = False) -> Path:
-    """Trial 0's estimates as /siteloc/pose and map -> odom on /tf; `.bag` is ROS 1, else mcap."""
-    from pipeline.io import tables
-    from pipeline.rosbag.bagfile import BagWriter
-    from pipeline.rosbag.messages import POSE_COV, TF, yaw_quat
-    from pipeline.rosbag.transforms import compose2d, inverse2d
+def _within(path: Path, folder: Path) -> bool:
+    return Path(path).resolve().is_relative_to(Path(folder).resolve())
 
-    est = tables.read_table(estimates, "estimates").to_pydict()
-    trial0 = [i for i, tr in enumerate(est["trial"]) if tr == 0]
-    pose = np.array([[est["x"][i], est["y"][i], est["theta"][i]] for i in trial0])
-    cov = np.array([[[est["cov_xx"][i], est["cov_xy"][i], 0.0], [est["cov_xy"][i], est["cov_yy"][i], 0.0],
-                     [0.0, 0.0, est["cov_tt"][i]]] for i in trial0])
-    run = drive.run
-    stamps = run["t0"] + np.asarray(run["t"])
-    map_from_odom = compose2d(pose, inverse2d(np.asarray(run["odom"])))
-    fmt = "bag" if dst.suffix == ".bag" else "mcap"
-    odom_frame = drive.rec.odom_frame or "odom"
-    if dst.exists() and not force:
-        from pipeline.errors import OutputExistsError
 
-        raise OutputExistsError(dst)
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=f".{dst.name}.tmp-", dir=dst.parent))
-    try:
-        inner = work / ("out.bag" if fmt == "bag" else "out")
-        with BagWriter(inner, fmt) as w:
-            w.topic(POSE_TOPIC, POSE_COV)
-            w.topic("/tf", TF)
-            for k, s in enumerate(stamps):
-                w.write(POSE_TOPIC, s, w.msgs.pose_with_covariance(s, pose[k], cov[k], "map", seq=k))
-                m = map_from_odom[k]
-                w.write("/tf", s, w.msgs.tf([w.msgs.transform_stamped(s, "map", odom_frame, (m[0], m[1], 0.0),
-                                                                      yaw_quat(m[2]))]))
-        made = inner if fmt == "bag" else next(inner.glob("*.mcap"))  # a bare .mcap file, as Foxglove opens
-        if dst.exists():
-            shutil.rmtree(dst) if dst.is_dir() else dst.unlink()
-        made.replace(dst)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
-    return dst
+def replay_stream(drive: Drive, rep: dict, data: Path):
+    """Trial 0 of a replay (`run_localize`'s `rep`, poses in the map frame) beside the recording's own scans,
+    odometry, frames and map, as `write_replay_bag` takes them."""
+    from pipeline.io.map_yaml import read_map
+    from pipeline.io.site import read_site
+    from pipeline.rosbag.replay_bag import ReplayStream
+
+    run, rec = drive.run, drive.rec
+    laser = read_site(data / "site.yaml").laser
+    frames = None
+    if any(fi is not None for fi in run["image"]):
+        frames = [None if fi is None else (rec.frames[fi][2], rec.frames[fi][3]) for fi in run["image"]]
+    return ReplayStream(
+        stamps=run["t0"] + np.asarray(run["t"]), map=read_map(data / "map.yaml"), odom=np.asarray(run["odom"]),
+        base_from_laser=(laser.mount.x, laser.mount.y, np.radians(laser.mount.yaw_deg)),
+        ranges=np.asarray(run["ranges"], np.float32), angle_min=laser.angle_min,
+        angle_increment=laser.angle_increment, range_min=float((rec.laser or {}).get("range_min", 0.0)),
+        range_max=laser.range_max, pose=rep["pose"], cov=rep["cov"], state=list(rep["state"]),
+        agreement=rep.get("agreement"), clouds=rep.get("cloud"), candidates=rep.get("candidates"), frames=frames,
+        odom_frame=drive.report["frames"]["odom"], base_frame=drive.report["frames"]["base"],
+        laser_frame=rec.laser_frame or "laser", camera_frame=rec.camera_frame or "camera")

@@ -10,7 +10,7 @@ from pipeline.localize import run_localize
 from pipeline.rosbag.bagfile import open_reader
 from pipeline.rosbag.export import run_export_bag
 from pipeline.rosbag.messages import stamp_of
-from pipeline.rosbag.replay import POSE_TOPIC, run_localize_bag
+from pipeline.rosbag.replay import run_localize_bag
 from tests.fixtures.capture_site import write_capture_site
 
 
@@ -38,8 +38,8 @@ def test_bag_replay_equals_the_ingested_run_and_writes_poses(tmp_path):
 
     with open_reader(poses) as reader:
         got = [(c.topic, reader.deserialize(raw, c.msgtype)) for c, _, raw in reader.messages()]
-    pose_msgs = [m for t, m in got if t == POSE_TOPIC]
-    tf_msgs = [m.transforms[0] for t, m in got if t == "/tf"]
+    pose_msgs = [m for t, m in got if t == "/siteloc/pose"]
+    tf_msgs = [tr for t, m in got if t == "/tf" for tr in m.transforms if tr.child_frame_id == "odom"]
     trial0 = pb[np.array(eb["trial"]) == 0]
     assert len(pose_msgs) == len(tf_msgs) == len(trial0) == 9
     xy = np.array([[m.pose.pose.position.x, m.pose.pose.position.y] for m in pose_msgs])
