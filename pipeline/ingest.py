@@ -69,7 +69,8 @@ def validate_site_dir(root: Path, cfg: IngestConfig, *, progress: bool = True) -
         problems.extend(exc.problems)
 
     csv_path = root / "captures.csv"
-    rows = read_captures(csv_path, problems)
+    laser_only = site is not None and site.camera is None
+    rows = read_captures(csv_path, problems, allow_empty=laser_only)
     check_rows(root, csv_path, rows, problems)
     if occ_map is not None:
         check_poses(csv_path, rows, occ_map, problems)
@@ -92,6 +93,9 @@ def validate_site_dir(root: Path, cfg: IngestConfig, *, progress: bool = True) -
             if run is not None:
                 runs.append(run)
 
+    if laser_only and not rows and not runs:
+        problems.add(runs_dir, "a laser-only site (no camera in site.yaml) has no runs",
+                     fix="add runs/<run>/ (trajectory.csv + scans.npy) recorded by the robot")
     referenced = {r.image for r in rows} | {i for run in runs for i in run.image if i}
     images_dir = root / "images"
     if images_dir.is_dir():

@@ -64,8 +64,9 @@ def parse_pose(rec: dict[str, str], bad: list[str], cols=("x", "y", "theta")) ->
     return nums
 
 
-def read_captures(path: Path, problems: Problems) -> list[CaptureRow]:
-    """Parse captures.csv, reporting every unparsable row; returns the rows that parsed."""
+def read_captures(path: Path, problems: Problems, *, allow_empty: bool = False) -> list[CaptureRow]:
+    """Parse captures.csv, reporting every unparsable row; returns the rows that parsed. `allow_empty`: a
+    header alone is fine (a laser-only site, whose robot drove without a camera)."""
     if not path.is_file():
         problems.add(path, "file is missing", fix="list every image with its stop and pose (docs/capture-format.md)")
         return []
@@ -114,8 +115,9 @@ def read_captures(path: Path, problems: Problems) -> list[CaptureRow]:
                 rec.get("area", ""),
             )
         )
-    if not rows and not problems:
-        problems.add(path, "no capture rows", fix="a site needs at least one capture stop")
+    if not rows and not problems and not allow_empty:
+        problems.add(path, "no capture rows", fix="a site needs at least one capture stop (or, for a laser-only "
+                     "site, no camera section in site.yaml and runs/)")
     return rows
 
 

@@ -99,6 +99,10 @@ def run_localize_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Pat
             from pipeline.errors import ConfigError
 
             raise ConfigError(f"--write-bag {write_bag}: name a .mcap file (ROS 2, Foxglove) or a .bag file (ROS 1)")
+        if write_bag.resolve() == out.resolve():
+            from pipeline.errors import ConfigError
+
+            raise ConfigError(f"--write-bag and --out name the same path ({out}): put the recording inside --out")
         check_output(write_bag, force=force, inputs=[*read, out] if not _within(write_bag, out) else read)
         if write_bag.is_dir():
             from pipeline.errors import ConfigError
@@ -135,7 +139,8 @@ def _within(path: Path, folder: Path) -> bool:
 
 def replay_stream(drive: Drive, rep: dict, data: Path):
     """Trial 0 of a replay (`run_localize`'s `rep`, poses in the map frame) beside the recording's own scans,
-    odometry, frames and map, as `write_replay_bag` takes them."""
+    odometry, frames and map, as `write_replay_bag` takes them. The scan is the filter's (levelled, on one
+    beam grid) in frame `<laser>_2d` at the 2-D mount, so it never clashes with the recording's own laser."""
     from pipeline.io.map_yaml import read_map
     from pipeline.io.site import read_site
     from pipeline.rosbag.replay_bag import ReplayStream
@@ -153,4 +158,4 @@ def replay_stream(drive: Drive, rep: dict, data: Path):
         range_max=laser.range_max, pose=rep["pose"], cov=rep["cov"], state=list(rep["state"]),
         agreement=rep.get("agreement"), clouds=rep.get("cloud"), candidates=rep.get("candidates"), frames=frames,
         odom_frame=drive.report["frames"]["odom"], base_frame=drive.report["frames"]["base"],
-        laser_frame=rec.laser_frame or "laser", camera_frame=rec.camera_frame or "camera")
+        laser_frame=f"{rec.laser_frame or 'laser'}_2d", camera_frame=rec.camera_frame or "camera")

@@ -2,7 +2,7 @@
 
 A recording's first scan fixes the grid (angle_min, angle_increment, beams). Every scan is read as
 REP 117 says and real drivers bend it: a negative `angle_increment` (a clockwise sweep) is reversed;
-readings of 0, below the message's `range_min` or NaN are invalid (NaN: the sensor models skip them,
+readings of 0, below the message's `range_min`, -inf or NaN are invalid (NaN: the sensor models skip them,
 as nav2's AMCL skips readings at or below range_min); readings beyond `range_max` are no return
 (+inf). A laser whose beam count changes by a few from scan to scan (an RPLidar's does: its motor
 speed sets the count) is resampled onto the first scan's grid, each grid beam taking the reading
@@ -54,7 +54,7 @@ def cleaned(ranges: np.ndarray, range_min: float, range_max: float) -> np.ndarra
     """float32 ranges: invalid readings (<= 0, below range_min, NaN, -inf) NaN; beyond range_max +inf."""
     r = np.asarray(ranges, dtype=np.float32).copy()
     with np.errstate(invalid="ignore"):
-        r[~(r > max(float(range_min), 0.0)) | np.isneginf(r)] = np.nan  # NaN compares False: stays NaN
+        r[~(r >= float(range_min)) | (r <= 0.0)] = np.nan  # NaN and -inf compare False: NaN
         r[r > range_max] = np.inf
     return r
 
