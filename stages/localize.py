@@ -81,6 +81,12 @@ def localize(
                                              show_default=False)] = None,
     write_bag: Annotated[Path | None, typer.Option("--write-bag", help="With --bag: write the estimates to this "
                                                    "recording (.mcap, or .bag for ROS 1).", show_default=False)] = None,
+    topic: Annotated[list[str] | None, typer.Option("--topic", help="With --bag: ROLE=TOPIC where a recording has "
+                                                    "several, e.g. scan=/scan_front (repeatable).",
+                                                    show_default=False)] = None,
+    frame: Annotated[list[str] | None, typer.Option("--frame", help="With --bag: ROLE=FRAME for map, odom, base, "
+                                                    "e.g. base=base_footprint (repeatable).",
+                                                    show_default=False)] = None,
     bag_map: Annotated[Path | None, typer.Option("--map", help="With --bag: map.yaml when the recording has no "
                                                  "/map.", show_default=False)] = None,
     run: Annotated[
@@ -124,11 +130,22 @@ def localize(
         cfg = load(config, set_)
         kw = dict(init=init, trials=trials, kidnap_at=kidnap_at, kidnap_min_jump_m=kidnap_min_jump, force=force,
                   start_pose=start)
+        if (topic or frame) and bag is None:
+            raise ConfigError("--topic and --frame go with --bag")
         if bag is not None:
+            from pipeline.rosbag.ingest import BagOptions
+            from pipeline.rosbag.read import ROLES
             from pipeline.rosbag.replay import run_localize_bag
+            from stages.bag import _pairs
 
+            roles = _pairs(topic, "--topic")
+            bad = [r for r in roles if r not in ROLES]
+            if bad:
+                raise ConfigError(f"--topic roles {bad} unknown; roles are {list(ROLES)}")
+            opts = BagOptions(roles=roles, frames=_pairs(frame, "--frame"))
             result = run_localize_bag(cfg, inputs={"bag": bag, "bundle": bundle, "map": bag_map},
-                                      outputs={"out": out}, write_bag=write_bag, progress=sys.stderr.isatty(), **kw)
+                                      outputs={"out": out}, options=opts, write_bag=write_bag,
+                                      progress=sys.stderr.isatty(), **kw)
         else:
             result = run_localize(cfg, inputs={"data": data}, outputs={"out": out}, runs=run, bundle=bundle,
                                   progress=sys.stderr.isatty(), **kw)

@@ -256,7 +256,8 @@ def test_cli_localizes_a_laser_only_recording_from_a_pose(floor, tmp_path):
     x, y, th = rec.gt[0]
     args = ["localize", "--bag", str(rec.path), "--map", str(map_yaml), "--out", str(tmp_path / "o"), "--init",
             "pose", "--write-bag", str(tmp_path / "o" / "replay.mcap")]
-    res = CliRunner().invoke(app, [*args, "--pose", f"{x},{y},{math.degrees(th)}"])
+    res = CliRunner().invoke(app, [*args, "--pose", f"{x},{y},{math.degrees(th)}", "--frame", "base=base_link",
+                                   "--topic", "scan=/scan"])
     assert res.exit_code == 0, res.output
     assert "no reference" in res.output and "yes (no reference)" in res.output
     assert (tmp_path / "o" / "replay.mcap").is_file()
@@ -264,3 +265,5 @@ def test_cli_localizes_a_laser_only_recording_from_a_pose(floor, tmp_path):
     assert np.allclose(doc["start_pose"], rec.gt[0])
     res = CliRunner().invoke(app, [*args, "--pose", "1,2", "--force"])
     assert res.exit_code == 1 and "expected X,Y,THETA" in res.output and "Traceback" not in res.output
+    res = CliRunner().invoke(app, [*args, "--topic", "laser=/scan", "--force"])
+    assert res.exit_code == 1 and "--topic roles ['laser'] unknown" in res.output
