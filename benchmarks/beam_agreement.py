@@ -115,6 +115,7 @@ def signals(data: Path, out: Path, cfg, kidnap_at: list[int] | None, tolerances:
                             "agreement": agree, "at_truth": at_truth,
                             "spread": spread_m(col["cov_xx"][sel], col["cov_xy"][sel], col["cov_yy"][sel]),
                             "states": states[sel].tolist(), "kidnapped": col["kidnapped"][sel].astype(bool),
+                            "updated": col["updated"][sel].astype(bool),
                             "held": bool(m["held"]), "gt_converged_step": m["converged_step"],
                             "gt_lost": m["lost_track_steps"], "ms": ms, "beams": run.ranges.shape[1]})
     return replays
@@ -297,7 +298,8 @@ def judge(rs: list[dict], rule: QualityRule) -> dict:
     """The rule on replays `rs`: per step (misclassified labelled steps) and per replay (against `held`)."""
     err, keep = labelled(rs)
     right = err[keep] < RIGHT_M
-    assessed = [assess(r["agreement"][rule.tolerance_m], r["spread"], r["states"], rule, r["kidnapped"]) for r in rs]
+    assessed = [assess(r["agreement"][rule.tolerance_m], r["spread"], r["states"], rule, r["kidnapped"],
+                       updated=r["updated"]) for r in rs]
     good = np.concatenate([a["good_steps"] for a in assessed])[keep]
     pairs = [(a["converged"], r["held"]) for a, r in zip(assessed, rs, strict=True)]
     return {"assessed": assessed, "rw_mask": right & ~good, "rw": int((right & ~good).sum()),

@@ -187,7 +187,7 @@ def run_table(run: CaptureRun, laser, site_name: str):
             "gt_x": gt[0::3],
             "gt_y": gt[1::3],
             "gt_theta": gt[2::3],
-            "ranges": list(ranges.astype(np.float32)),
+            "ranges": tables.list_column(ranges.astype(np.float32)),
             "angle_min": [laser.angle_min] * n,
             "angle_increment": [laser.angle_increment] * n,
             "range_max": [laser.range_max] * n,

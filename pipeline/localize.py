@@ -117,14 +117,15 @@ def replay_one(run, lmap, fcfg, mount, init: str, trial: int, candidate_weights=
         out["updated"].append(res.updated)
         out["best"].append(res.best_likelihood)
         out["ms"].append(ms)
-        out["cloud"].append(cloud_of(f.particles, keep_cloud))
+        out["cloud"].append(cloud_of(f.particles, keep_cloud) if res.updated or t == 0 else None)
     out = {k: (v if k in ("state", "cloud") else np.array(v)) for k, v in out.items()}
     out["final_particles"] = f.particles.copy()
     return out
 
 
 def cloud_of(particles: np.ndarray, n: int) -> np.ndarray | None:
-    """At most n particles, evenly strided (float32), for the replay bag; None when n is 0."""
+    """At most n particles, evenly strided (float32), for the replay bag; None when n is 0. Kept only where the
+    filter updated (the set is the same in between)."""
     if n <= 0:
         return None
     step = max(1, len(particles) // n)
@@ -154,7 +155,7 @@ def replay_bundle(run, loc, data: Path, trial: int, keep_cloud: int = 0) -> dict
         for key, value in (("pose", e.pose), ("cov", e.covariance), ("state", e.state), ("particles", e.n_particles),
                            ("updated", e.updated), ("best", e.best_likelihood), ("candidates", e.candidates)):
             out[key].append(value)
-        out["cloud"].append(cloud_of(loc.filter.particles, keep_cloud))
+        out["cloud"].append(cloud_of(loc.filter.particles, keep_cloud) if e.updated or t == 0 else None)
     out = {k: (v if k in ("state", "cloud", "candidates") else np.array(v)) for k, v in out.items()}
     out["final_particles"] = loc.filter.particles.copy()
     out["seed_candidates"] = seeded
@@ -164,15 +165,20 @@ def replay_bundle(run, loc, data: Path, trial: int, keep_cloud: int = 0) -> dict
 def estimate_columns(run, trial: int, rep: dict, err: np.ndarray, err_t: np.ndarray) -> dict:
     """The columns of an `estimates` table for one replay (`replay_one` / `replay_bundle` output, with the
     quality of `quality_of`)."""
+    from pipeline.runtime.quality import spread_m
+
     n = len(run)
     pose = rep["pose"]
     gt = run.gt if run.gt is not None else np.full((n, 3), np.nan)
+    agreement = rep.get("agreement")  # None: not computed (`siteloc evaluate`'s replays, measured against truth)
     return {"run": [run.name] * n, "trial": [trial] * n, "step": np.arange(n), "x": pose[:, 0], "y": pose[:, 1],
             "theta": pose[:, 2], "cov_xx": rep["cov"][:, 0, 0], "cov_xy": rep["cov"][:, 0, 1],
             "cov_yy": rep["cov"][:, 1, 1], "cov_tt": rep["cov"][:, 2, 2], "state": rep["state"],
             "particles": rep["particles"], "updated": rep["updated"], "best_likelihood": rep["best"],
-            "update_ms": rep["ms"], "agreement": [None if np.isnan(v) else float(v) for v in rep["agreement"]],
-            "spread_m": rep["spread"], "gt_x": gt[:, 0], "gt_y": gt[:, 1], "gt_theta": gt[:, 2],
+            "update_ms": rep["ms"],
+            "agreement": [None] * n if agreement is None else [None if np.isnan(v) else float(v) for v in agreement],
+            "spread_m": spread_m(rep["cov"][:, 0, 0], rep["cov"][:, 0, 1], rep["cov"][:, 1, 1]),
+            "gt_x": gt[:, 0], "gt_y": gt[:, 1], "gt_theta": gt[:, 2],
             "error_xy": err, "error_theta": err_t, "kidnapped": run.kidnapped}
 
 
@@ -186,7 +192,8 @@ def quality_of(rep: dict, run, lmap, mount, cfg: SitelocConfig) -> dict:
                                               run.range_max, mount, rule.tolerance_m,
                                               range_min=cfg.filter.sensor.range_min)
     rep["spread"] = quality.spread_m(rep["cov"][:, 0, 0], rep["cov"][:, 0, 1], rep["cov"][:, 1, 1])
-    verdict = quality.assess(rep["agreement"], rep["spread"], rep["state"], rule, kidnapped=run.kidnapped)
+    verdict = quality.assess(rep["agreement"], rep["spread"], rep["state"], rule, kidnapped=run.kidnapped,
+                             updated=rep["updated"])
     verdict.pop("good_steps")
     return verdict
 
@@ -206,10 +213,16 @@ def _turned(map_from_grid, poses: np.ndarray | None, inverse: bool = False) -> n
     """Poses (N, 3) from the grid frame to the map frame (`inverse`: map to grid); unchanged without a turn."""
     if map_from_grid is None or poses is None:
         return poses
-    from pipeline.rosbag.transforms import compose2d, inverse2d
+    from pipeline.runtime.motion import wrap_angle
 
-    a = map_from_grid[None] if not inverse else inverse2d(map_from_grid[None])
-    return compose2d(np.repeat(a, len(poses), 0), np.asarray(poses, dtype=np.float64).reshape(-1, 3))
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    ox, oy, yaw = map_from_grid
+    if inverse:
+        c, s = np.cos(yaw), np.sin(yaw)
+        dx, dy = p[:, 0] - ox, p[:, 1] - oy
+        return np.column_stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(p[:, 2] - yaw)])
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.column_stack([ox + c * p[:, 0] - s * p[:, 1], oy + s * p[:, 0] + c * p[:, 1], wrap_angle(p[:, 2] + yaw)])
 
 
 def _turned_cov(map_from_grid, cov: np.ndarray) -> np.ndarray:

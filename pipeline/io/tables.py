@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from pathlib import Path
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
@@ -245,6 +246,13 @@ def _with_metadata(schema: pa.Schema, kind: str, extra: dict[str, str] | None) -
     return schema.with_metadata(meta)
 
 
+def list_column(rows: np.ndarray) -> pa.ListArray:
+    """A (N, B) array as a list column of N rows, from its buffer (not through N Python lists)."""
+    rows = np.ascontiguousarray(rows)
+    n, b = rows.shape
+    return pa.ListArray.from_arrays(pa.array(np.arange(0, n * b + 1, b, dtype=np.int32)), pa.array(rows.ravel()))
+
+
 def to_table(kind: str, columns: dict, metadata: dict[str, str] | None = None) -> pa.Table:
     """Build a table of `kind` from column arrays, cast to the contract's types."""
     schema = SCHEMAS[kind]
@@ -252,6 +260,7 @@ def to_table(kind: str, columns: dict, metadata: dict[str, str] | None = None) -
     if missing:
         raise KeyError(f"{kind} table is missing columns {missing}")
     arrays = [columns[f.name] if isinstance(columns[f.name], pa.FixedSizeListArray) else
+              columns[f.name].cast(f.type) if isinstance(columns[f.name], pa.Array) else
               pa.array(columns[f.name], type=f.type) for f in schema]
     schema = pa.schema([pa.field(f.name, a.type, nullable=f.nullable) for f, a in zip(schema, arrays, strict=True)])
     return pa.Table.from_arrays(arrays, schema=_with_metadata(schema, kind, metadata))

@@ -99,7 +99,7 @@ class QualityRule:
 
     agreement: float = 0.8  # share of usable beams within `tolerance_m` of a wall, at least
     spread_m: float = 0.5  # particle spread (`spread_m`), at most
-    hold: int = 20  # steps the rule must hold to converge, and fail to lose track
+    hold: int = 20  # steps (filter updates, with `assess(updated=...)`) it must hold to converge, fail to lose
     tolerance_m: float = TOLERANCE_M  # for `beam_agreement`: 3 cells at 5 cm
 
 
@@ -117,7 +117,38 @@ def _first(mask: np.ndarray, start: int, end: int) -> int | None:
     return int(start + hits[0]) if len(hits) else None
 
 
-def assess(agreement, spread, states, rule: QualityRule = QualityRule(), kidnapped=None) -> dict:
+def assess(agreement, spread, states, rule: QualityRule = QualityRule(), kidnapped=None, updated=None) -> dict:
+    """`_assess` on the steps where the filter updated (`updated` (N,) bool; None: every step), the step numbers
+    it reports those of the whole run. The hold then counts filter updates (one every update_min_d of travel),
+    not scans: a 40 Hz laser would otherwise pass 20 steps in half a second, inside a room that looks like the
+    right one; evidence comes with travel."""
+    if updated is None:
+        return _assess(agreement, spread, states, rule, kidnapped)
+    states = [str(v) for v in states]
+    n = len(states)
+    idx = np.flatnonzero(np.asarray(updated, bool))
+    if len(idx) == 0 or idx[0] != 0:
+        idx = np.r_[0, idx]  # the first step stands for the start
+    kid = None
+    if kidnapped is not None:  # a kidnapping between updates marks the next update
+        kid = np.zeros(len(idx), bool)
+        at = np.searchsorted(idx, np.flatnonzero(np.asarray(kidnapped, bool)), side="left")
+        kid[at[at < len(idx)]] = True
+    out = _assess(np.asarray(agreement, np.float64)[idx], np.asarray(spread, np.float64)[idx],
+                  [states[i] for i in idx], rule, kid)
+    if out["converged_step"] is not None:
+        out["converged_step"] = int(idx[out["converged_step"]])
+    out["lost_steps"] = [int(idx[k]) for k in out["lost_steps"]]
+    out["good_steps"] = out["good_steps"][np.searchsorted(idx, np.arange(n), side="right") - 1]
+    out["steps"], out["updates"] = n, int(len(idx))
+    out["state_changes"] = state_changes(states)
+    names = list(STATES) + sorted(set(states) - set(STATES))
+    arr = np.asarray(states)
+    out["share_by_state"] = {s: round(float(np.mean(arr == s)), 4) if n else 0.0 for s in names}
+    return out
+
+
+def _assess(agreement, spread, states, rule: QualityRule = QualityRule(), kidnapped=None) -> dict:
     """Per-run quality figures from per-step agreement (`beam_agreement`), spread (`spread_m`) and states.
 
     `kidnapped` (N,) bool marks the steps where the robot was carried away (as the runs and estimates tables

@@ -239,3 +239,30 @@ def test_defaults_agree():
 def test_assess_refuses_mismatched_lengths():
     with pytest.raises(ValueError, match="length"):
         assess([0.9, 0.9], [0.1], ["tracking", "tracking"], RULE)
+
+
+def test_the_hold_counts_filter_updates_when_given_and_steps_map_back():
+    """A 40 Hz laser repeats each update's evidence over many scans: with `updated`, 20 steps of a good
+    stretch that hold only 4 updates do not converge; the verdict equals the one on the updates alone, with
+    the run's step numbers."""
+    rng = np.random.default_rng(3)
+    n_up = 80
+    per = rng.integers(1, 9, n_up)  # scans between updates, 1..8
+    idx = np.r_[0, np.cumsum(per)[:-1]]
+    n = int(per.sum())
+    agreement_up = np.where((np.arange(n_up) >= 10) & ((np.arange(n_up) < 50) | (np.arange(n_up) >= 75)), 0.95, 0.3)
+    states_up = ["relocalising"] * 10 + ["tracking"] * 70
+    step_of = np.searchsorted(idx, np.arange(n), side="right") - 1  # each scan carries its last update's figures
+    agreement, states = agreement_up[step_of], [states_up[k] for k in step_of]
+    spread = np.full(n, 0.1)
+    updated = np.zeros(n, bool)
+    updated[idx] = True
+    rule = QualityRule(hold=20)
+    got = assess(agreement, spread, states, rule, updated=updated)
+    twin = assess(agreement_up, np.full(n_up, 0.1), states_up, rule)  # the updates alone
+    assert got["converged_step"] == idx[twin["converged_step"]] == idx[10]
+    assert got["lost_steps"] == [int(idx[k]) for k in twin["lost_steps"]] == [int(idx[50])]
+    assert got["converged"] is False and got["steps"] == n and got["updates"] == n_up
+    assert np.array_equal(got["good_steps"], twin["good_steps"][step_of])
+    by_steps = assess(agreement, spread, states, rule)  # without `updated`: 20 scans can be 3 updates
+    assert by_steps["converged_step"] is not None and by_steps["converged_step"] <= got["converged_step"]
