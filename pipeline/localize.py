@@ -63,12 +63,13 @@ def _at_step(run, t: int, err: RuntimeInputError, what: str = "") -> RuntimeInpu
 
 
 def replay_one(run, lmap, fcfg, mount, init: str, trial: int, candidate_weights=None, start_pose=None,
-               keep_cloud: int = 0) -> dict:
+               keep_cloud: int = 0, on_step=None) -> dict:
     """Replay `run` once; returns per-step arrays and the final particle set. With `candidates`, a
     simulated camera proposes len(candidate_weights) ranked poses at every step and the runtime's camera
     path (`CameraPath`) uses them as retrieval's, weighted `candidate_weights` (retrieval.candidate_weights).
     `pose` starts at `start_pose` (else the first ground-truth pose); `keep_cloud` particles per step are
-    kept (`cloud`) for the replay bag."""
+    kept (`cloud`) for the replay bag; `on_step(t, pose, covariance, state, particles)` sees each step (the
+    particles where the filter updated, else None)."""
     from pipeline.evaluation.replay import simulated_candidates
     from pipeline.runtime import inputs
     from pipeline.runtime.amcl import AdaptiveMCL
@@ -118,6 +119,8 @@ def replay_one(run, lmap, fcfg, mount, init: str, trial: int, candidate_weights=
         out["best"].append(res.best_likelihood)
         out["ms"].append(ms)
         out["cloud"].append(cloud_of(f.particles, keep_cloud) if res.updated or t == 0 else None)
+        if on_step is not None:
+            on_step(t, res.pose, res.covariance, res.state.value, f.particles if res.updated or t == 0 else None)
     out = {k: (v if k in ("state", "cloud") else np.array(v)) for k, v in out.items()}
     out["final_particles"] = f.particles.copy()
     return out
@@ -132,7 +135,7 @@ def cloud_of(particles: np.ndarray, n: int) -> np.ndarray | None:
     return particles[::step][:n].astype(np.float32)
 
 
-def replay_bundle(run, loc, data: Path, trial: int, keep_cloud: int = 0) -> dict:
+def replay_bundle(run, loc, data: Path, trial: int, keep_cloud: int = 0, on_step=None) -> dict:
     """Replay `run` through a bundle's Localizer with the run's camera frames (in `data`), if it has any:
     without, the bundle's filter runs on the laser alone. Scans keep the run's own laser geometry."""
     from pipeline.runtime.sensor import Scan
@@ -156,6 +159,8 @@ def replay_bundle(run, loc, data: Path, trial: int, keep_cloud: int = 0) -> dict
                            ("updated", e.updated), ("best", e.best_likelihood), ("candidates", e.candidates)):
             out[key].append(value)
         out["cloud"].append(cloud_of(loc.filter.particles, keep_cloud) if e.updated or t == 0 else None)
+        if on_step is not None:
+            on_step(t, e.pose, e.covariance, e.state, loc.filter.particles if e.updated or t == 0 else None)
     out = {k: (v if k in ("state", "cloud", "candidates") else np.array(v)) for k, v in out.items()}
     out["final_particles"] = loc.filter.particles.copy()
     out["seed_candidates"] = seeded
@@ -249,10 +254,12 @@ def run_localize(
     progress: bool = True,
     keep_cloud: int = 0,
     on_replay=None,
+    on_step=None,
 ) -> Path:
     """`start_pose` (map frame, radians) starts `pose` there instead of at the ground truth. `on_replay(run,
     rep, tmp)` is called with trial 0 of each run (poses in the map frame, `cloud`: `keep_cloud` particles per
-    step) while the output is being written in `tmp`."""
+    step) while the output is being written in `tmp`. `on_step(run, t, pose, state, particles, agreement,
+    spread)` sees each step of trial 0 as it is computed (map frame; `pipeline.rosbag.live`)."""
     from pipeline.evaluation import plots
     from pipeline.evaluation.metrics import replay_metrics
     from pipeline.evaluation.overview import overview_figure
@@ -308,10 +315,11 @@ def run_localize(
             if kidnap_at:
                 run = teleport(run, kidnap_at, kidnap_min_jump_m, seed=cfg.filter.seed + 1000 * trial)
             grid_run = run if map_from_grid is None else _with_gt(run, _turned(map_from_grid, run.gt, inverse=True))
-            rep = (replay_bundle(grid_run, loc, data, trial, keep_cloud) if loc is not None
+            hook = _step_hook(on_step, run, grid_run, lmap, mount, map_from_grid, cfg) if trial == 0 else None
+            rep = (replay_bundle(grid_run, loc, data, trial, keep_cloud, on_step=hook) if loc is not None
                    else replay_one(grid_run, lmap, cfg.filter, mount, init, trial,
                                      candidate_weights=cfg.retrieval.candidate_weights, start_pose=grid_start,
-                                     keep_cloud=keep_cloud))
+                                     keep_cloud=keep_cloud, on_step=hook))
             quality = quality_of(rep, grid_run, lmap, mount, cfg)
             grid_pose = rep["pose"]
             rep["pose"] = pose = _turned(map_from_grid, grid_pose)
@@ -367,6 +375,30 @@ def run_localize(
         write_text_atomic(tmp / "metrics.json", json.dumps(doc, indent=2) + "\n")
         write_effective_config(cfg, tmp, stage="localize", inputs={"data": data})
     return out
+
+
+def _step_hook(on_step, run, grid_run, lmap, mount, map_from_grid, cfg):
+    """`on_step` fed in the map frame, with the step's agreement and spread (as `quality_of` computes them)."""
+    if on_step is None:
+        return None
+    from pipeline.runtime import quality
+
+    rule = quality.QualityRule()
+
+    def hook(t, pose, cov, state, particles):
+        agree = quality.beam_agreement(lmap, np.asarray(pose)[None], grid_run.ranges[t: t + 1], run.angle_min,
+                                       run.angle_increment, run.range_max, mount, rule.tolerance_m,
+                                       range_min=cfg.filter.sensor.range_min)[0]
+        spread = float(quality.spread_m(cov[0, 0], cov[0, 1], cov[1, 1]))
+        on_step(run, t, _turned(map_from_grid, np.asarray(pose)[None])[0], state,
+                None if particles is None else _turned(map_from_grid, cloud_of(particles, LIVE_CLOUD)),
+                float(agree), spread)
+
+    return hook
+
+
+#: Particles per step a live view shows.
+LIVE_CLOUD = 500
 
 
 def _with_gt(run, gt):

@@ -55,7 +55,8 @@ map -> base_link at the scan's stamp, and the camera frame nearest in time (what
 of it). A laser-only recording with no map frame (what a robot records) works: --map gives the map.
 --write-bag OUT.mcap (or .bag for ROS 1) writes the replay to watch in Foxglove or RViz: the map, the scan,
 the particles, the estimate with its covariance, map -> odom, the filter's state and, with --bundle, the
-retrieved candidates and the camera frame, stamped like the scans.
+retrieved candidates and the camera frame, stamped like the scans. --live serves the replay to Foxglove
+as it runs (Open connection > Foxglove WebSocket > ws://127.0.0.1:8765), at the recording's speed.
 
 Example: siteloc localize data/carmen/intel-corrected --out data/localize/intel --init uniform --trials 10
 
@@ -87,6 +88,14 @@ def localize(
     frame: Annotated[list[str] | None, typer.Option("--frame", help="With --bag: ROLE=FRAME for map, odom, base, "
                                                     "e.g. base=base_footprint (repeatable).",
                                                     show_default=False)] = None,
+    live: Annotated[bool, typer.Option("--live", help="With --bag: serve the replay to Foxglove as it runs (a "
+                                       "WebSocket server on 127.0.0.1; needs the foxglove-sdk package).")] = False,
+    live_port: Annotated[int, typer.Option("--live-port", min=0, max=65535, help="Port of --live (0: any free).")]
+    = 8765,
+    live_speed: Annotated[float, typer.Option("--live-speed", min=0.0, help="With --live: replay at this many "
+                                              "times the recording's speed (0: as fast as it runs).")] = 1.0,
+    live_wait: Annotated[float, typer.Option("--live-wait", min=0.0, help="With --live: wait up to this many "
+                                             "seconds for Foxglove to subscribe before the first step.")] = 0.0,
     bag_map: Annotated[Path | None, typer.Option("--map", help="With --bag: map.yaml when the recording has no "
                                                  "/map.", show_default=False)] = None,
     run: Annotated[
@@ -130,8 +139,8 @@ def localize(
         cfg = load(config, set_)
         kw = dict(init=init, trials=trials, kidnap_at=kidnap_at, kidnap_min_jump_m=kidnap_min_jump, force=force,
                   start_pose=start)
-        if (topic or frame) and bag is None:
-            raise ConfigError("--topic and --frame go with --bag")
+        if (topic or frame or live) and bag is None:
+            raise ConfigError("--topic, --frame and --live go with --bag")
         if bag is not None:
             from pipeline.rosbag.ingest import BagOptions
             from pipeline.rosbag.read import ROLES
@@ -143,9 +152,13 @@ def localize(
             if bad:
                 raise ConfigError(f"--topic roles {bad} unknown; roles are {list(ROLES)}")
             opts = BagOptions(roles=roles, frames=_pairs(frame, "--frame"))
+            view = None if not live else {
+                "port": live_port, "speed": live_speed, "wait_s": live_wait,
+                "on_start": lambda url: typer.echo(f"live view: {url} (Foxglove: Open connection > Foxglove "
+                                                   "WebSocket)", err=True)}
             result = run_localize_bag(cfg, inputs={"bag": bag, "bundle": bundle, "map": bag_map},
                                       outputs={"out": out}, options=opts, write_bag=write_bag,
-                                      progress=sys.stderr.isatty(), **kw)
+                                      progress=sys.stderr.isatty(), live=view, **kw)
         else:
             result = run_localize(cfg, inputs={"data": data}, outputs={"out": out}, runs=run, bundle=bundle,
                                   progress=sys.stderr.isatty(), **kw)

@@ -10,6 +10,7 @@ scans' own stamps so it plays alone or beside the recording.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import tempfile
@@ -81,7 +82,8 @@ def bag_dataset(bag: Path, root: Path, opts: BagOptions, cfg: SitelocConfig, map
 
 
 def run_localize_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Path], options: BagOptions | None = None,
-                     write_bag: Path | None = None, progress: bool = True, cloud: int = CLOUD, **localize_kw) -> Path:
+                     write_bag: Path | None = None, progress: bool = True, cloud: int = CLOUD,
+                     live: dict | None = None, **localize_kw) -> Path:
     """`localize` on `inputs['bag']` (with `inputs['bundle']` for retrieval, `inputs['map']` for a map.yaml);
     optionally the replay as a recording to watch (`write_bag`: .mcap, or .bag for ROS 1). The replay
     recording goes through the output guard as `--out` does: never onto, into or around an input, never
@@ -117,9 +119,17 @@ def run_localize_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Pat
             if write_bag is not None:
                 write_replay_bag(work / (inside or staged), replay_stream(drive, rep, Path(tmp)))
 
-        result = run_localize(cfg, inputs={"data": Path(tmp)}, outputs=outputs, progress=progress,
-                              bundle=inputs.get("bundle"), keep_cloud=cloud if write_bag is not None else 0,
-                              on_replay=on_replay, **localize_kw)
+        with contextlib.ExitStack() as stack:
+            view = stack.enter_context(live_view(drive, Path(tmp), live)) if live is not None else None
+            if view is not None:
+                if live.get("on_start"):
+                    live["on_start"](view.url)
+                view.wait_for_client()
+            result = run_localize(cfg, inputs={"data": Path(tmp)}, outputs=outputs, progress=progress,
+                                  bundle=inputs.get("bundle"), keep_cloud=cloud if write_bag is not None else 0,
+                                  on_replay=on_replay, on_step=None if view is None else
+                                  lambda run, t, pose, state, parts, agree, spread: view.step(
+                                      t, pose, state, parts, agree, spread), **localize_kw)
         notes = notes_text(recording_notes(drive))
         if notes:
             doc = json.loads((result / "metrics.json").read_text())
@@ -131,6 +141,23 @@ def run_localize_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Pat
         shutil.move(result / staged, write_bag.parent / f".{write_bag.name}.tmp")
         (write_bag.parent / f".{write_bag.name}.tmp").replace(write_bag)
     return result
+
+
+def live_view(drive: Drive, data: Path, live: dict):
+    """The `LiveView` of a recording's replay (the dataset `bag_dataset` wrote in `data`)."""
+    from pipeline.io.map_yaml import read_map
+    from pipeline.io.site import read_site
+    from pipeline.rosbag.live import LiveView
+
+    run, rec = drive.run, drive.rec
+    laser = read_site(data / "site.yaml").laser
+    f = drive.report["frames"]
+    return LiveView(read_map(data / "map.yaml"), run["t0"] + np.asarray(run["t"]), np.asarray(run["odom"]),
+                    np.asarray(run["ranges"], np.float32), laser.angle_min, laser.angle_increment,
+                    (laser.mount.x, laser.mount.y, np.radians(laser.mount.yaw_deg)),
+                    frames={"map": "map", "odom": f["odom"], "base": f["base"],
+                            "laser": f"{rec.laser_frame or 'laser'}_2d"},
+                    **{k: v for k, v in live.items() if k in ("host", "port", "speed", "wait_s")})
 
 
 def _within(path: Path, folder: Path) -> bool:
