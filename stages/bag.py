@@ -148,7 +148,7 @@ def ingest_bag(
             raise ConfigError("--out is required (or --list to only look)")
         import json
 
-        from pipeline.rosbag.ingest import BagOptions, run_ingest_bag
+        from pipeline.rosbag.ingest import BagOptions, notes_text, run_ingest_bag
 
         roles = _pairs(topic, "--topic")
         from pipeline.rosbag.read import ROLES
@@ -173,6 +173,8 @@ def ingest_bag(
             if r["incomplete_stops"] or drop or gaps:
                 typer.secho(f"{n}: {len(r['incomplete_stops'])} incomplete stops, dropped {drop or 'nothing'}, "
                             f"{len(gaps)} tf gaps (see bag_report.md)", fg=typer.colors.YELLOW, err=True)
+            for note in notes_text(r):
+                typer.echo(f"{n}: {note}", err=True)
         if rep["ingest_needs"]:
             typer.secho(f"the stops are a weaker capture: run `siteloc ingest` with {rep['ingest_needs']}",
                         fg=typer.colors.YELLOW, err=True)

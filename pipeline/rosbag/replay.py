@@ -117,6 +117,7 @@ def run_localize_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Pat
 
         def on_replay(run, rep, work: Path) -> None:
             if write_bag is not None:
+                (work / (inside or staged)).parent.mkdir(parents=True, exist_ok=True)
                 write_replay_bag(work / (inside or staged), replay_stream(drive, rep, Path(tmp)))
 
         with contextlib.ExitStack() as stack:

@@ -212,9 +212,9 @@ def test_write_bag_goes_through_the_output_guard(floor, tmp_path):
         run("o1", tmp_path / "taken.mcap")
     assert (tmp_path / "taken.mcap").read_bytes() == b"mine" and not (tmp_path / "o1").exists()
     assert sorted((p.name, p.stat().st_size) for p in rec.path.iterdir()) == before
-    out = run("o2", tmp_path / "o2" / "replay.mcap")  # inside --out: written with it
+    out = run("o2", tmp_path / "o2" / "bags" / "replay.mcap")  # inside --out: written with it
     beside = run("o3", tmp_path / "beside.mcap")
-    assert (out / "replay.mcap").is_file() and (tmp_path / "beside.mcap").is_file()
+    assert (out / "bags" / "replay.mcap").is_file() and (tmp_path / "beside.mcap").is_file()
     assert not list(beside.glob("replay*")) and not list(tmp_path.glob(".*tmp*"))
     with open_reader(tmp_path / "beside.mcap") as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
