@@ -1,6 +1,6 @@
 """Stage `localize`: replay recorded runs through the runtime filter and measure it.
 
-Input: a dataset directory as `ingest` or `ingest-log` writes it (map.yaml + runs/<run>.parquet, and
+Input: a dataset directory as `ingest` or `ingest-log` writes it (map.yaml + runs/<run>.parquet or .arrow, and
 site.yaml for the laser mount when present). For each run and trial (trial t uses filter seed + t) the
 filter starts as `init` says: `uniform` (global localization), `pose` (at the first ground-truth pose),
 `candidates` (a simulated camera: at every step four ranked poses, the truth with noise among
@@ -42,9 +42,9 @@ def _mount(data: Path) -> tuple[float, float, float]:
 
 
 def _run_paths(data: Path, names: list[str] | None) -> list[Path]:
-    found = sorted((data / "runs").glob("*.parquet"))
+    found = sorted([*(data / "runs").glob("*.parquet"), *(data / "runs").glob("*.arrow")])
     if not found:
-        raise InputError(f"{data}: no runs", [Problem(str(data / "runs"), "no <run>.parquet files",
+        raise InputError(f"{data}: no runs", [Problem(str(data / "runs"), "no <run>.parquet or <run>.arrow files",
                                                       fix="point at the output of `siteloc ingest` or `ingest-log`")])
     if names:
         by_name = {p.stem: p for p in found}
@@ -307,7 +307,7 @@ def run_localize(
         if loc is not None and not any(r.image_ids or ()):
             notes.append(f"{r.name}: no camera frames; the bundle's filter runs on the laser alone")
     grid_start = None if start_pose is None else _turned(map_from_grid, np.asarray([start_pose]), inverse=True)[0]
-    rows: dict[str, list] = {f.name: [] for f in tables.ESTIMATES}
+    parts: list[dict] = []  # per replay, the estimates' columns (arrays: no Python object per step and column)
     per_run: dict[str, list[dict]] = {}
     with atomic_dir(out, force=force, inputs=[*inputs.values(), bundle]) as tmp:
         jobs = [(r, t) for r in loaded for t in range(trials)]
@@ -341,8 +341,7 @@ def run_localize(
                 m = {"steps": len(run), "update_ms_mean": round(float(np.mean(ms)), 4) if len(ms) else None}
             m["quality"] = quality
             per_run.setdefault(run.name, []).append({"trial": trial, **m})
-            for k, v in estimate_columns(run, trial, rep, err, err_t).items():
-                rows[k].extend(list(v))
+            parts.append(estimate_columns(run, trial, rep, err, err_t))
             if trial == 0:
                 title = f"{run.name}: init {init}, {cfg.filter.method}, {cfg.filter.sensor.model}"
                 if run.gt is not None:
@@ -357,6 +356,7 @@ def run_localize(
                                 title=f"{title}" + ("" if run.gt is not None else " (no reference: quality rule)"))
                 if on_replay is not None:
                     on_replay(run, rep, tmp)
+        rows = _concatenated(parts)
         tables.write_table(tmp / "estimates.parquet", tables.to_table("estimates", rows), "estimates",
                            metadata={"init": init, "method": cfg.filter.method})
         if np.isfinite(np.array(rows["error_xy"], dtype=np.float64)).any():
@@ -374,6 +374,18 @@ def run_localize(
                "trials": trials, "kidnap_at": kidnap_at or [], "notes": notes, "summary": summary, "runs": per_run}
         write_text_atomic(tmp / "metrics.json", json.dumps(doc, indent=2) + "\n")
         write_effective_config(cfg, tmp, stage="localize", inputs={"data": data})
+    return out
+
+
+def _concatenated(parts: list[dict]) -> dict:
+    """The columns of several replays end to end: numeric arrays concatenated, anything else as one list."""
+    out = {}
+    for name in parts[0]:
+        values = [p[name] for p in parts]
+        if all(isinstance(v, np.ndarray) and v.dtype.kind in "biuf" for v in values):
+            out[name] = np.concatenate(values)
+        else:
+            out[name] = [x for v in values for x in v]
     return out
 
 

@@ -44,7 +44,10 @@ def _ranges(path: Path, column) -> np.ndarray:
     Python lists: a 20-minute 40 Hz run is 17 M readings)."""
     import pyarrow as pa
 
-    arr = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
+    if isinstance(column, pa.ChunkedArray):  # one chunk (a mapped Arrow file): read in place, no copy
+        arr = column.chunk(0) if column.num_chunks == 1 else column.combine_chunks()
+    else:
+        arr = column
     lengths = np.unique(arr.value_lengths().to_numpy(zero_copy_only=False)) if len(arr) else np.array([0])
     if len(lengths) != 1:
         raise InputError(f"{path}: scans of different lengths {lengths[:5].tolist()}",

@@ -256,7 +256,7 @@ def extract_drive(rec: Recording, site_offsets, opts: BagOptions, tol_deg: float
             dropped["frames_without_scan"] = len(fs) - len(best)
             dropped["sync_tolerance_s"] = opts.sync_tolerance_s
         drive.run = {"t": t - t[0] if len(t) else t, "t0": float(t[0]) if len(t) else 0.0, "odom": odom_p,
-                     "gt": ref_p, "ranges": rec.ranges[idx],
+                     "gt": ref_p, "ranges": rec.ranges if len(idx) == len(rec.ranges) else rec.ranges[idx],
                      "image": image, "kidnapped": _kidnapped(odom_p, ref_p, opts)}
         dropped["tf_gaps"] = _gaps(rec, m or odom_f, base, np.r_[t, [f[0] for f in rec.frames]])
         dropped["resampled_scans"] = rec.resampled_scans

@@ -159,7 +159,29 @@ def _intrinsics(path: Path, topic: str, index: int, msg) -> Camera:
                   cy=float(k[5]), distortion=distortion)
 
 
-def _scan(rec: Recording, path: Path, topic: str, index: int, msg, scans: list) -> None:
+class _Rows:
+    """Scans gathered into one array allocated once (the topic's message count is known up front): a long
+    recording's ranges are held once, not as a list and then a stacked copy."""
+
+    def __init__(self, capacity: int):
+        self.capacity, self.n, self.array = capacity, 0, None
+
+    def append(self, row: np.ndarray) -> None:
+        if self.array is None:
+            self.array = np.empty((max(self.capacity, 1), len(row)), dtype=np.float32)
+        if self.n == len(self.array):  # more messages than the index said: grow
+            self.array = np.concatenate([self.array, np.empty_like(self.array)])
+        self.array[self.n] = row
+        self.n += 1
+
+    def __len__(self) -> int:
+        return self.n
+
+    def stacked(self) -> np.ndarray:
+        return self.array[: self.n]
+
+
+def _scan(rec: Recording, path: Path, topic: str, index: int, msg, scans: _Rows) -> None:
     """One LaserScan onto the recording's beam grid (the first scan's; `pipeline.rosbag.scans`)."""
     n, inc = len(msg.ranges), float(msg.angle_increment)
     if n < 2 or inc == 0 or not math.isfinite(inc) or not math.isfinite(float(msg.angle_min)):
@@ -207,7 +229,8 @@ def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dic
         conns = [c for c in reader.connections if c.topic in wanted]
         counts = {t: 0 for t in wanted}
         last_stamp: dict[str, float] = {}
-        scans, scan_stamps, sizes = [], [], []
+        scan_stamps, sizes = [], []
+        scans = _Rows(sum(c.msgcount for c in conns if c.topic == topics.get("scan")))
         first_info: tuple[int, Camera] | None = None
         total = sum(c.msgcount for c in conns)
         msgs = messages(reader, path, conns)
@@ -271,8 +294,8 @@ def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dic
                 _scan(rec, path, topic, index, msg, scans)
                 scan_stamps.append(stamp)
     rec.messages = sum(counts.values())
-    if scans:
-        rec.ranges, rec.scan_stamps = np.stack(scans), np.asarray(scan_stamps)
+    if len(scans):
+        rec.ranges, rec.scan_stamps = scans.stacked(), np.asarray(scan_stamps)
     if rec.odom_msgs and rec.tf.path(rec.odom_frame, rec.base_frame) is None:  # only on /odom: it is the edge
         for stamp, xyz, quat in rec.odom_msgs:
             rec.tf.add(rec.odom_frame, rec.base_frame, stamp, xyz, quat, static=False)
