@@ -203,41 +203,6 @@ def quality_of(rep: dict, run, lmap, mount, cfg: SitelocConfig) -> dict:
     return verdict
 
 
-def _grid_frame(occ):
-    """(the map as an axis-aligned grid, map_from_grid (3,)): the filter works on the grid; a map.yaml whose
-    origin has a yaw is the same grid turned in the map frame, so poses are turned in and out around it."""
-    from dataclasses import replace
-
-    pose = np.array([occ.origin_x, occ.origin_y, occ.origin_yaw])
-    if not occ.origin_yaw:
-        return occ, None
-    return replace(occ, origin_x=0.0, origin_y=0.0, origin_yaw=0.0), pose
-
-
-def _turned(map_from_grid, poses: np.ndarray | None, inverse: bool = False) -> np.ndarray | None:
-    """Poses (N, 3) from the grid frame to the map frame (`inverse`: map to grid); unchanged without a turn."""
-    if map_from_grid is None or poses is None:
-        return poses
-    from pipeline.runtime.motion import wrap_angle
-
-    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-    ox, oy, yaw = map_from_grid
-    if inverse:
-        c, s = np.cos(yaw), np.sin(yaw)
-        dx, dy = p[:, 0] - ox, p[:, 1] - oy
-        return np.column_stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(p[:, 2] - yaw)])
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.column_stack([ox + c * p[:, 0] - s * p[:, 1], oy + s * p[:, 0] + c * p[:, 1], wrap_angle(p[:, 2] + yaw)])
-
-
-def _turned_cov(map_from_grid, cov: np.ndarray) -> np.ndarray:
-    if map_from_grid is None:
-        return cov
-    c, s = np.cos(map_from_grid[2]), np.sin(map_from_grid[2])
-    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return r @ cov @ r.T
-
-
 def run_localize(
     cfg: SitelocConfig,
     *,
@@ -261,6 +226,7 @@ def run_localize(
     step) while the output is being written in `tmp`. `on_step(run, t, pose, state, particles, agreement,
     spread)` sees each step of trial 0 as it is computed (map frame; `pipeline.rosbag.live`)."""
     from pipeline.evaluation import plots
+    from pipeline.evaluation.map_frame import grid_frame, turned, turned_cov, with_gt
     from pipeline.evaluation.metrics import replay_metrics
     from pipeline.evaluation.overview import overview_figure
     from pipeline.evaluation.replay import load_run, teleport
@@ -286,7 +252,7 @@ def run_localize(
         loc = Localizer.from_bundle(Path(bundle), seed=cfg.filter.seed)
     data, out = Path(inputs["data"]), Path(outputs["out"])
     occ_map = read_map(data / "map.yaml")
-    occ, map_from_grid = _grid_frame(occ_map)
+    occ, map_from_grid = grid_frame(occ_map)
     lmap = LaserMap.from_occupancy(occ, cfg.filter.sensor.max_distance)
     mount = _mount(data)
     paths = _run_paths(data, runs)
@@ -297,7 +263,7 @@ def run_localize(
             raise InputError(f"{r.name}: no ground truth", [Problem(
                 r.name, f"--init {init} and kidnappings need it", fix="use --init uniform without --kidnap-at, "
                 "or --init pose --pose X,Y,THETA to start at a pose you know")])
-        start = None if r.gt is None else _turned(map_from_grid, r.gt[:1], inverse=True)[0]
+        start = None if r.gt is None else turned(map_from_grid, r.gt[:1], inverse=True)[0]
         if start is not None and not lmap.known(start[0], start[1]):
             where = "off the map" if lmap.cell_of(start[0], start[1]) is None else "in unknown space"
             raise InputError(f"{r.name}: the recording starts outside the map", [Problem(
@@ -306,7 +272,7 @@ def run_localize(
                 "recording where the robot enters the map")])
         if loc is not None and not any(r.image_ids or ()):
             notes.append(f"{r.name}: no camera frames; the bundle's filter runs on the laser alone")
-    grid_start = None if start_pose is None else _turned(map_from_grid, np.asarray([start_pose]), inverse=True)[0]
+    grid_start = None if start_pose is None else turned(map_from_grid, np.asarray([start_pose]), inverse=True)[0]
     parts: list[dict] = []  # per replay, the estimates' columns (arrays: no Python object per step and column)
     per_run: dict[str, list[dict]] = {}
     with atomic_dir(out, force=force, inputs=[*inputs.values(), bundle]) as tmp:
@@ -314,7 +280,7 @@ def run_localize(
         for run, trial in progress_bar(jobs, desc="replaying", unit="replay", enabled=progress):
             if kidnap_at:
                 run = teleport(run, kidnap_at, kidnap_min_jump_m, seed=cfg.filter.seed + 1000 * trial)
-            grid_run = run if map_from_grid is None else _with_gt(run, _turned(map_from_grid, run.gt, inverse=True))
+            grid_run = run if map_from_grid is None else with_gt(run, turned(map_from_grid, run.gt, inverse=True))
             hook = _step_hook(on_step, run, grid_run, lmap, mount, map_from_grid, cfg) if trial == 0 else None
             rep = (replay_bundle(grid_run, loc, data, trial, keep_cloud, on_step=hook) if loc is not None
                    else replay_one(grid_run, lmap, cfg.filter, mount, init, trial,
@@ -322,8 +288,8 @@ def run_localize(
                                      keep_cloud=keep_cloud, on_step=hook))
             quality = quality_of(rep, grid_run, lmap, mount, cfg)
             grid_pose = rep["pose"]
-            rep["pose"] = pose = _turned(map_from_grid, grid_pose)
-            rep["cov"] = _turned_cov(map_from_grid, rep["cov"])
+            rep["pose"] = pose = turned(map_from_grid, grid_pose)
+            rep["cov"] = turned_cov(map_from_grid, rep["cov"])
             kid = np.nonzero(run.kidnapped)[0].tolist()
             stamps = step_stamps(run.t, len(run))
             write_tum(tmp / "trajectories" / f"{run.name}_trial{trial}.tum", pose, stamps)
@@ -393,6 +359,7 @@ def _step_hook(on_step, run, grid_run, lmap, mount, map_from_grid, cfg):
     """`on_step` fed in the map frame, with the step's agreement and spread (as `quality_of` computes them)."""
     if on_step is None:
         return None
+    from pipeline.evaluation.map_frame import turned
     from pipeline.runtime import quality
 
     rule = quality.QualityRule()
@@ -402,8 +369,8 @@ def _step_hook(on_step, run, grid_run, lmap, mount, map_from_grid, cfg):
                                        run.angle_increment, run.range_max, mount, rule.tolerance_m,
                                        range_min=cfg.filter.sensor.range_min)[0]
         spread = float(quality.spread_m(cov[0, 0], cov[0, 1], cov[1, 1]))
-        on_step(run, t, _turned(map_from_grid, np.asarray(pose)[None])[0], state,
-                None if particles is None else _turned(map_from_grid, cloud_of(particles, LIVE_CLOUD)),
+        on_step(run, t, turned(map_from_grid, np.asarray(pose)[None])[0], state,
+                None if particles is None else turned(map_from_grid, cloud_of(particles, LIVE_CLOUD)),
                 float(agree), spread)
 
     return hook
@@ -411,12 +378,6 @@ def _step_hook(on_step, run, grid_run, lmap, mount, map_from_grid, cfg):
 
 #: Particles per step a live view shows.
 LIVE_CLOUD = 500
-
-
-def _with_gt(run, gt):
-    from dataclasses import replace
-
-    return replace(run, gt=gt)
 
 
 def _summary(per_run: dict[str, list[dict]]) -> dict:

@@ -148,7 +148,8 @@ def ingest_bag(
             raise ConfigError("--out is required (or --list to only look)")
         import json
 
-        from pipeline.rosbag.ingest import BagOptions, notes_text, run_ingest_bag
+        from pipeline.rosbag.drive import notes_text
+        from pipeline.rosbag.ingest import BagOptions, run_ingest_bag
 
         roles = _pairs(topic, "--topic")
         from pipeline.rosbag.read import ROLES

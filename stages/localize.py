@@ -142,7 +142,7 @@ def localize(
         if (topic or frame or live) and bag is None:
             raise ConfigError("--topic, --frame and --live go with --bag")
         if bag is not None:
-            from pipeline.rosbag.ingest import BagOptions
+            from pipeline.rosbag.drive import BagOptions
             from pipeline.rosbag.read import ROLES
             from pipeline.rosbag.replay import run_localize_bag
             from stages.bag import _pairs

@@ -21,7 +21,7 @@ import numpy as np
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem
 from pipeline.io.atomic import check_output, write_text_atomic
-from pipeline.rosbag.ingest import (
+from pipeline.rosbag.drive import (
     BagOptions,
     Drive,
     extract_drive,

@@ -87,7 +87,7 @@ def test_each_mix_of_traits_tracks_from_the_first_true_pose(floor, name):
 
 def test_what_the_reader_makes_of_an_upside_down_clockwise_laser_is_what_an_upright_one_sees(floor, tmp_path):
     """Scans read back (mirrored, reversed) equal a cast from the true laser pose with the upright mount."""
-    from pipeline.rosbag.ingest import BagOptions, extract_drive, laser_of
+    from pipeline.rosbag.drive import BagOptions, extract_drive, laser_of
     from pipeline.rosbag.read import read_recording
     from pipeline.sitegen.laser import LaserScanner
 
