@@ -133,7 +133,7 @@ def steps_to_scans(out: Path, run: str, n_steps: int, rec) -> np.ndarray:
 def truth_errors(out: Path, rec, map_from_grid=None) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """Per trial: (position error m, heading error rad) per step against `rec.gt` (turned into the map frame by
     `map_from_grid` when the map.yaml's origin turns the grid)."""
-    from pipeline.rosbag.transforms import compose2d
+    from pipeline.runtime.motion import compose2d
 
     est = read_estimates(out)
     truth = np.asarray(rec.gt, dtype=np.float64)
@@ -169,7 +169,7 @@ def fmt(v, f="{:.3f}"):
 
 
 def run_traits(cfg, work: Path, names: list[str] | None) -> None:
-    from pipeline.rosbag.transforms import compose2d
+    from pipeline.runtime.motion import compose2d
 
     cases = [c for c in CASES if not names or c.name in names or slug(c.name) in names]
     rows = []

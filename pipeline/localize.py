@@ -182,7 +182,8 @@ def estimate_columns(run, trial: int, rep: dict, err: np.ndarray, err_t: np.ndar
             "particles": rep["particles"], "updated": rep["updated"], "best_likelihood": rep["best"],
             "update_ms": rep["ms"],
             "agreement": [None] * n if agreement is None else [None if np.isnan(v) else float(v) for v in agreement],
-            "spread_m": spread_m(rep["cov"][:, 0, 0], rep["cov"][:, 0, 1], rep["cov"][:, 1, 1]),
+            "spread_m": rep["spread"] if "spread" in rep else spread_m(rep["cov"][:, 0, 0], rep["cov"][:, 0, 1],
+                                                                       rep["cov"][:, 1, 1]),
             "gt_x": gt[:, 0], "gt_y": gt[:, 1], "gt_theta": gt[:, 2],
             "error_xy": err, "error_theta": err_t, "kidnapped": run.kidnapped}
 
@@ -325,8 +326,8 @@ def run_localize(
         rows = _concatenated(parts)
         tables.write_table(tmp / "estimates.parquet", tables.to_table("estimates", rows), "estimates",
                            metadata={"init": init, "method": cfg.filter.method})
-        if np.isfinite(np.array(rows["error_xy"], dtype=np.float64)).any():
-            errs = np.array(rows["error_xy"], dtype=np.float64)
+        errs = np.asarray(rows["error_xy"], dtype=np.float64)
+        if np.isfinite(errs).any():
             run_col = np.array(rows["run"])
             plots.error_cdf_figure(tmp / "plots" / "error_cdf.png",
                                    {name: errs[(run_col == name) & np.isfinite(errs)] for name in per_run})

@@ -24,16 +24,11 @@ def turned(map_from_grid, poses: np.ndarray | None, inverse: bool = False) -> np
     """Poses (N, 3) from the grid frame to the map frame (`inverse`: map to grid); unchanged without a turn."""
     if map_from_grid is None or poses is None:
         return poses
-    from pipeline.runtime.motion import wrap_angle
+    from pipeline.runtime.motion import compose2d, inverse2d
 
     p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-    ox, oy, yaw = map_from_grid
-    if inverse:
-        c, s = np.cos(yaw), np.sin(yaw)
-        dx, dy = p[:, 0] - ox, p[:, 1] - oy
-        return np.column_stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(p[:, 2] - yaw)])
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.column_stack([ox + c * p[:, 0] - s * p[:, 1], oy + s * p[:, 0] + c * p[:, 1], wrap_angle(p[:, 2] + yaw)])
+    a = np.asarray(map_from_grid, dtype=np.float64).reshape(1, 3)
+    return compose2d(np.repeat(inverse2d(a) if inverse else a, len(p), 0), p)
 
 
 def turned_cov(map_from_grid, cov: np.ndarray) -> np.ndarray:

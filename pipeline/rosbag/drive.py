@@ -21,8 +21,7 @@ from pipeline.rosbag.messages import yaw_quat
 from pipeline.rosbag.read import Recording
 from pipeline.rosbag.scans import Grid, mirror
 from pipeline.rosbag.stops import stops_every, turning_stops
-from pipeline.rosbag.transforms import compose2d, inverse2d
-from pipeline.runtime.motion import wrap_angle
+from pipeline.runtime.motion import compose2d, inverse2d, wrap_angle
 
 #: A laser whose scan plane leans further than this from the floor's is refused.
 LEVEL_TOLERANCE_DEG = 10.0

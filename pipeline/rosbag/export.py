@@ -22,8 +22,7 @@ from pipeline.config import OdometryNoise, SitelocConfig, write_effective_config
 from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
 from pipeline.rosbag.bagfile import BagWriter
 from pipeline.rosbag.messages import CAMERA_INFO, COMPRESSED, GRID, ODOMETRY, SCAN, TF, yaw_quat
-from pipeline.rosbag.transforms import compose2d, inverse2d
-from pipeline.runtime.motion import wrap_angle
+from pipeline.runtime.motion import compose2d, inverse2d, wrap_angle
 
 START = 1_700_000_000.0  # bag clock of the first recording (an ordinary Unix time; fixed for reproducibility)
 LATENCY = {"image": 0.030, "scan": 0.010, "odom": 0.002, "tf": 0.002}  # receive time after the stamp, s

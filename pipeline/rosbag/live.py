@@ -18,6 +18,8 @@ import time
 
 import numpy as np
 
+from pipeline.runtime.motion import compose2d, inverse2d
+
 #: Seconds between two publications of the map (a client that connects later still gets it).
 MAP_EVERY_S = 2.0
 
@@ -119,7 +121,7 @@ class LiveView:
             self.ch["map"].log(self._grid(ts), log_time=self._ns(t))
             self._last_map = now
         odom = self.odom[t]
-        map_from_odom = _compose(np.asarray(pose, float), _inverse(odom))
+        map_from_odom = compose2d(np.asarray(pose, float)[None], inverse2d(odom[None]))[0]
         tfs = [FrameTransform(timestamp=ts, parent_frame_id=f["map"], child_frame_id=f["odom"],
                               translation=_vec(map_from_odom), rotation=_quat(map_from_odom[2])),
                FrameTransform(timestamp=ts, parent_frame_id=f["odom"], child_frame_id=f["base"],
@@ -159,16 +161,6 @@ class LiveView:
                     cell_size=Vector2(x=occ.resolution, y=occ.resolution), row_stride=w, cell_stride=1,
                     fields=[PackedElementField(name="occupancy", offset=0, type=PackedElementFieldNumericType.Uint8)],
                     data=cells.tobytes())
-
-
-def _compose(a, b):
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2]])
-
-
-def _inverse(a):
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array([-c * a[0] - s * a[1], s * a[0] - c * a[1], -a[2]])
 
 
 def _vec(p):

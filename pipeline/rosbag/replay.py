@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.config import SitelocConfig, write_effective_config
-from pipeline.errors import InputError, Problem
+from pipeline.errors import ConfigError, InputError, Problem
 from pipeline.io.atomic import check_output, write_text_atomic
 from pipeline.rosbag.drive import (
     BagOptions,
@@ -99,17 +99,11 @@ def run_localize_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Pat
     if write_bag is not None:
         write_bag = Path(write_bag)
         if write_bag.suffix not in (".mcap", ".bag"):
-            from pipeline.errors import ConfigError
-
             raise ConfigError(f"--write-bag {write_bag}: name a .mcap file (ROS 2, Foxglove) or a .bag file (ROS 1)")
         if write_bag.resolve() == out.resolve():
-            from pipeline.errors import ConfigError
-
             raise ConfigError(f"--write-bag and --out name the same path ({out}): put the recording inside --out")
         check_output(write_bag, force=force, inputs=[*read, out] if not _within(write_bag, out) else read)
         if write_bag.is_dir():
-            from pipeline.errors import ConfigError
-
             raise ConfigError(f"--write-bag {write_bag}: a folder is there; name a file")
         inside = write_bag.resolve().relative_to(out.resolve()) if _within(write_bag, out) else None
     with tempfile.TemporaryDirectory(prefix="siteloc-bag-") as tmp:
@@ -145,20 +139,31 @@ def run_localize_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Pat
     return result
 
 
-def live_view(drive: Drive, data: Path, live: dict):
-    """The `LiveView` of a recording's replay (the dataset `bag_dataset` wrote in `data`)."""
+def _recorded(drive: Drive, data: Path) -> dict:
+    """What the replay recording and the live view show of the recording itself (the dataset `bag_dataset`
+    wrote in `data`): stamps, map, odometry, the filter's scans and laser, frames. The scan is the filter's
+    (levelled, on one beam grid) in frame `<laser>_2d` at the 2-D mount, never clashing with the recording's."""
     from pipeline.io.map_yaml import read_map
     from pipeline.io.site import read_site
-    from pipeline.rosbag.live import LiveView
 
     run, rec = drive.run, drive.rec
     laser = read_site(data / "site.yaml").laser
     f = drive.report["frames"]
-    return LiveView(read_map(data / "map.yaml"), run["t0"] + np.asarray(run["t"]), np.asarray(run["odom"]),
-                    np.asarray(run["ranges"], np.float32), laser.angle_min, laser.angle_increment,
-                    (laser.mount.x, laser.mount.y, np.radians(laser.mount.yaw_deg)),
-                    frames={"map": "map", "odom": f["odom"], "base": f["base"],
-                            "laser": f"{rec.laser_frame or 'laser'}_2d"},
+    return {"stamps": run["t0"] + np.asarray(run["t"]), "map": read_map(data / "map.yaml"),
+            "odom": np.asarray(run["odom"]), "ranges": np.asarray(run["ranges"], np.float32),
+            "angle_min": laser.angle_min, "angle_increment": laser.angle_increment,
+            "base_from_laser": (laser.mount.x, laser.mount.y, np.radians(laser.mount.yaw_deg)),
+            "frames": {"map": "map", "odom": f["odom"], "base": f["base"], "laser": f"{rec.laser_frame or 'laser'}_2d"},
+            "range_min": float((rec.laser or {}).get("range_min", 0.0)), "range_max": laser.range_max}
+
+
+def live_view(drive: Drive, data: Path, live: dict):
+    """The `LiveView` of a recording's replay."""
+    from pipeline.rosbag.live import LiveView
+
+    r = _recorded(drive, data)
+    return LiveView(r["map"], r["stamps"], r["odom"], r["ranges"], r["angle_min"], r["angle_increment"],
+                    r["base_from_laser"], frames=r["frames"],
                     **{k: v for k, v in live.items() if k in ("host", "port", "speed", "wait_s")})
 
 
@@ -168,23 +173,17 @@ def _within(path: Path, folder: Path) -> bool:
 
 def replay_stream(drive: Drive, rep: dict, data: Path):
     """Trial 0 of a replay (`run_localize`'s `rep`, poses in the map frame) beside the recording's own scans,
-    odometry, frames and map, as `write_replay_bag` takes them. The scan is the filter's (levelled, on one
-    beam grid) in frame `<laser>_2d` at the 2-D mount, so it never clashes with the recording's own laser."""
-    from pipeline.io.map_yaml import read_map
-    from pipeline.io.site import read_site
+    odometry, frames and map, as `write_replay_bag` takes them."""
     from pipeline.rosbag.replay_bag import ReplayStream
 
-    run, rec = drive.run, drive.rec
-    laser = read_site(data / "site.yaml").laser
+    run, rec, r = drive.run, drive.rec, _recorded(drive, data)
     frames = None
     if any(fi is not None for fi in run["image"]):
         frames = [None if fi is None else (rec.frames[fi][2], rec.frames[fi][3]) for fi in run["image"]]
     return ReplayStream(
-        stamps=run["t0"] + np.asarray(run["t"]), map=read_map(data / "map.yaml"), odom=np.asarray(run["odom"]),
-        base_from_laser=(laser.mount.x, laser.mount.y, np.radians(laser.mount.yaw_deg)),
-        ranges=np.asarray(run["ranges"], np.float32), angle_min=laser.angle_min,
-        angle_increment=laser.angle_increment, range_min=float((rec.laser or {}).get("range_min", 0.0)),
-        range_max=laser.range_max, pose=rep["pose"], cov=rep["cov"], state=list(rep["state"]),
+        stamps=r["stamps"], map=r["map"], odom=r["odom"], base_from_laser=r["base_from_laser"], ranges=r["ranges"],
+        angle_min=r["angle_min"], angle_increment=r["angle_increment"], range_min=r["range_min"],
+        range_max=r["range_max"], pose=rep["pose"], cov=rep["cov"], state=list(rep["state"]),
         agreement=rep.get("agreement"), clouds=rep.get("cloud"), candidates=rep.get("candidates"), frames=frames,
-        odom_frame=drive.report["frames"]["odom"], base_frame=drive.report["frames"]["base"],
-        laser_frame=f"{rec.laser_frame or 'laser'}_2d", camera_frame=rec.camera_frame or "camera")
+        odom_frame=r["frames"]["odom"], base_frame=r["frames"]["base"], laser_frame=r["frames"]["laser"],
+        camera_frame=rec.camera_frame or "camera")

@@ -184,7 +184,7 @@ def write_replay_bag(dst: Path, stream: ReplayStream, *, fmt: str | None = None)
 
 def _write_messages(w, s: ReplayStream) -> None:
     from pipeline.rosbag.messages import yaw_quat
-    from pipeline.rosbag.transforms import compose2d, inverse2d
+    from pipeline.runtime.motion import compose2d, inverse2d
 
     m = w.msgs
     n = s.steps

@@ -36,23 +36,6 @@ class Transforms:
         return np.column_stack([self.xyz[:, 0], self.xyz[:, 1], np.arctan2(m[:, 1], m[:, 0])])
 
 
-def compose2d(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """SE(2) a * b for (N, 3) arrays of x, y, heading (e.g. map_from_odom * odom_from_base)."""
-    from pipeline.runtime.motion import wrap_angle
-
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    return np.column_stack([a[:, 0] + c * b[:, 0] - s * b[:, 1], a[:, 1] + s * b[:, 0] + c * b[:, 1],
-                            wrap_angle(a[:, 2] + b[:, 2])])
-
-
-def inverse2d(a: np.ndarray) -> np.ndarray:
-    """SE(2) inverses of (N, 3) poses."""
-    from pipeline.runtime.motion import wrap_angle
-
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    return np.column_stack([-c * a[:, 0] - s * a[:, 1], s * a[:, 0] - c * a[:, 1], wrap_angle(-a[:, 2])])
-
-
 def from_floor_pose(poses: np.ndarray, z: float = 0.0) -> Transforms:
     """SE(2) poses (N, 3) as SE(3) transforms at height z."""
     poses = np.atleast_2d(np.asarray(poses, dtype=np.float64))

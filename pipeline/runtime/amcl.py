@@ -29,7 +29,13 @@ from pipeline.io.odometry import noise_alphas
 from pipeline.runtime import inputs
 from pipeline.runtime.estimate import PoseEstimate, estimate_pose, mode_near_best
 from pipeline.runtime.grid import LaserMap
-from pipeline.runtime.motion import odometry_delta, sample_motion_model_odometry, wrap_angle
+from pipeline.runtime.motion import (
+    compose2d,
+    inverse2d,
+    odometry_delta,
+    sample_motion_model_odometry,
+    wrap_angle,
+)
 from pipeline.runtime.sampling import kld_resample, low_variance_indices
 from pipeline.runtime.sensor import Scan, make_sensor_model
 
@@ -362,11 +368,7 @@ class AdaptiveMCL:
         e = self._estimate
         pose = e.pose.copy()
         if not updated and self._odom is not None and self._odom_now is not None:
-            c0, s0 = math.cos(self._odom[2]), math.sin(self._odom[2])
-            dx, dy = self._odom_now[0] - self._odom[0], self._odom_now[1] - self._odom[1]
-            lx, ly = c0 * dx + s0 * dy, -s0 * dx + c0 * dy  # odom_at_update^-1 * odom_now, in the base frame
-            c, s = math.cos(pose[2]), math.sin(pose[2])
-            pose = np.array([pose[0] + c * lx - s * ly, pose[1] + s * lx + c * ly,
-                             float(wrap_angle(pose[2] + self._odom_now[2] - self._odom[2]))])
+            since = compose2d(inverse2d(self._odom[None]), self._odom_now[None])  # odometry since the update
+            pose = compose2d(pose[None], since)[0]
         return StepResult(pose, e.covariance.copy(), self.state, len(self.particles), updated, self._best,
                           self.w_fast, self.w_slow, e.clusters, e.cluster_weight)

@@ -25,6 +25,19 @@ def wrap_angle(angle: np.ndarray | float) -> np.ndarray:
     return np.where(w >= np.pi, w - 2.0 * np.pi, w)
 
 
+def compose2d(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """SE(2) a * b for (N, 3) arrays of x, y, heading (e.g. map_from_odom * odom_from_base)."""
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    return np.column_stack([a[:, 0] + c * b[:, 0] - s * b[:, 1], a[:, 1] + s * b[:, 0] + c * b[:, 1],
+                            wrap_angle(a[:, 2] + b[:, 2])])
+
+
+def inverse2d(a: np.ndarray) -> np.ndarray:
+    """SE(2) inverses of (N, 3) poses."""
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    return np.column_stack([-c * a[:, 0] - s * a[:, 1], s * a[:, 0] - c * a[:, 1], wrap_angle(-a[:, 2])])
+
+
 def odometry_delta(
     prev_pose: np.ndarray, cur_pose: np.ndarray, *, min_trans: float = 1e-9
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -15,7 +15,7 @@ import pytest
 from pipeline.config import load_config
 from pipeline.errors import ConfigError, InputError, OutputExistsError, OutputOverlapsInputError
 from pipeline.io import tables
-from pipeline.rosbag.transforms import compose2d
+from pipeline.runtime.motion import compose2d
 from tests.fixtures.robot_recordings import Traits, floor_map, record, write_map_yaml
 
 CFG = load_config("demo")
