@@ -66,7 +66,7 @@ class StopsMode(StrEnum):
     every = "every"
 
 
-def _pairs(values: list[str] | None, what: str, number: bool = False) -> dict:
+def pairs(values: list[str] | None, what: str, number: bool = False) -> dict:
     from pipeline.errors import ConfigError
 
     out = {}
@@ -82,6 +82,18 @@ def _pairs(values: list[str] | None, what: str, number: bool = False) -> dict:
         else:
             out[key] = val
     return out
+
+
+def topic_roles(topic: list[str] | None) -> dict[str, str]:
+    """--topic ROLE=TOPIC pairs, every role one siteloc knows (`pipeline.rosbag.read.ROLES`)."""
+    from pipeline.errors import ConfigError
+    from pipeline.rosbag.read import ROLES
+
+    roles = pairs(topic, "--topic")
+    bad = [r for r in roles if r not in ROLES]
+    if bad:
+        raise ConfigError(f"--topic roles {bad} unknown; roles are {list(ROLES)}")
+    return roles
 
 
 def _print_inventory(paths: list[Path]) -> None:
@@ -151,14 +163,8 @@ def ingest_bag(
         from pipeline.rosbag.drive import notes_text
         from pipeline.rosbag.ingest import BagOptions, run_ingest_bag
 
-        roles = _pairs(topic, "--topic")
-        from pipeline.rosbag.read import ROLES
-
-        bad = [r for r in roles if r not in ROLES]
-        if bad:
-            raise ConfigError(f"--topic roles {bad} unknown; roles are {list(ROLES)}")
-        opts = BagOptions(roles=roles, offsets=_pairs(time_offset, "--time-offset", number=True),
-                          frames=_pairs(frame, "--frame"), stops=StopsMode(stops).value, stops_every_m=stops_every,
+        opts = BagOptions(roles=topic_roles(topic), offsets=pairs(time_offset, "--time-offset", number=True),
+                          frames=pairs(frame, "--frame"), stops=StopsMode(stops).value, stops_every_m=stops_every,
                           stops_from=list(stops_from or []), stop_radius_m=stop_radius,
                           view_tolerance_deg=view_tolerance, sync_tolerance_s=sync_tolerance, tf_max_gap_s=tf_max_gap,
                           kidnap_jump_m=kidnap_jump, scan_stride=scan_stride, name=name)

@@ -143,15 +143,10 @@ def localize(
             raise ConfigError("--topic, --frame and --live go with --bag")
         if bag is not None:
             from pipeline.rosbag.drive import BagOptions
-            from pipeline.rosbag.read import ROLES
             from pipeline.rosbag.replay import run_localize_bag
-            from stages.bag import _pairs
+            from stages.bag import pairs, topic_roles
 
-            roles = _pairs(topic, "--topic")
-            bad = [r for r in roles if r not in ROLES]
-            if bad:
-                raise ConfigError(f"--topic roles {bad} unknown; roles are {list(ROLES)}")
-            opts = BagOptions(roles=roles, frames=_pairs(frame, "--frame"))
+            opts = BagOptions(roles=topic_roles(topic), frames=pairs(frame, "--frame"))
             view = None if not live else {
                 "port": live_port, "speed": live_speed, "wait_s": live_wait,
                 "on_start": lambda url: typer.echo(f"live view: {url} (Foxglove: Open connection > Foxglove "
