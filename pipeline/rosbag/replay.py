@@ -39,7 +39,8 @@ from pipeline.rosbag.replay_bag import write_replay_bag
 CLOUD = 200
 
 
-def bag_dataset(bag: Path, root: Path, opts: BagOptions, cfg: SitelocConfig, map_yaml: Path | None = None) -> Drive:
+def bag_dataset(bag: Path, root: Path, opts: BagOptions, cfg: SitelocConfig, map_yaml: Path | None = None,
+                progress: bool = False) -> Drive:
     """Write the dataset of one recording under `root` (map.yaml, site.yaml, runs/<name>.parquet, images/)."""
     from pipeline.io import tables
     from pipeline.io.capture_runs import CaptureRun
@@ -52,7 +53,7 @@ def bag_dataset(bag: Path, root: Path, opts: BagOptions, cfg: SitelocConfig, map
         raise InputError(f"{bag}: {len(found)} recordings", [Problem(str(bag), "localize --bag replays one recording",
                                                                       fix=f"pass one of {[p.name for p in found]}")])
     path = found[0]
-    rec = read_recording(path, opts.roles, opts.offsets, opts.tf_max_gap_s, opts.sync_tolerance_s)
+    rec = read_recording(path, opts.roles, opts.offsets, opts.tf_max_gap_s, opts.sync_tolerance_s, progress)
     if rec.ranges is None:
         raise InputError(f"{path}: no laser scans", [Problem(str(path), "has no sensor_msgs/LaserScan topic",
                                                              fix="the filter needs the laser; record /scan")])
@@ -107,7 +108,7 @@ def run_localize_bag(cfg: SitelocConfig, *, inputs: dict, outputs: dict[str, Pat
             raise ConfigError(f"--write-bag {write_bag}: a folder is there; name a file")
         inside = write_bag.resolve().relative_to(out.resolve()) if _within(write_bag, out) else None
     with tempfile.TemporaryDirectory(prefix="siteloc-bag-") as tmp:
-        drive = bag_dataset(Path(inputs["bag"]), Path(tmp), opts, cfg, inputs.get("map"))
+        drive = bag_dataset(Path(inputs["bag"]), Path(tmp), opts, cfg, inputs.get("map"), progress)
         staged = Path("replay" + (write_bag.suffix if write_bag is not None else ".mcap"))
 
         def on_replay(run, rep, work: Path) -> None:
