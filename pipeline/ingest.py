@@ -170,16 +170,18 @@ def _run_table(run: CaptureRun, site: Site):
     return run_table(run, site.laser, site.name)
 
 
-def run_table(run: CaptureRun, laser, site_name: str):
-    """The `runs` table of one run; ranges past the laser's range_max (or non-finite) become range_max."""
+def run_table(run: CaptureRun, laser, site_name: str, first_step: int = 0):
+    """The `runs` table of one run (or of its part from step `first_step` on); ranges past the laser's
+    range_max (or non-finite) become range_max."""
     n = len(run.t)
-    ranges = np.where(np.isfinite(run.ranges), np.minimum(run.ranges, laser.range_max), laser.range_max)
+    ranges = np.asarray(run.ranges, dtype=np.float32)
+    ranges = np.where(np.isfinite(ranges), np.minimum(ranges, laser.range_max), laser.range_max)
     gt = [None if np.isnan(v) else float(v) for v in run.gt.ravel()]
     return tables.to_table(
         "runs",
         {
             "run": [run.name] * n,
-            "step": np.arange(n),
+            "step": np.arange(first_step, first_step + n),
             "t": run.t,
             "odom_x": run.odom[:, 0],
             "odom_y": run.odom[:, 1],

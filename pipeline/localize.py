@@ -95,35 +95,43 @@ def replay_one(run, lmap, fcfg, mount, init: str, trial: int, candidate_weights=
                             rank_image=lambda t: simulated_candidates(run.gt[t], lmap, n_cand, rng))
     else:
         f.init_uniform()
-    scans = [Scan(r, run.angle_min, run.angle_increment, run.range_max) for r in run.ranges]
-    f.sensor.evaluate(f.particles[:2], scans[0])  # compile the kernels before timing anything
+    def scan(t: int) -> Scan:  # one at a time: a long run's ranges are read as the replay reaches them
+        return Scan(run.ranges[t], run.angle_min, run.angle_increment, run.range_max)
+
+    f.sensor.evaluate(f.particles[:2], scan(0))  # compile the kernels before timing anything
     if camera is not None:
         camera.verifier  # noqa: B018 - its range table is built before timing anything
-    T = len(run)
-    out = {k: [] for k in ("pose", "cov", "state", "particles", "updated", "best", "ms", "cloud")}
+    T, beams = len(run), len(run.ranges[0])
+    out = _step_arrays(T)
     odom = None
     for t in range(T):
         try:  # what the bundle's Localizer checks (its update); the run's own laser sets the beam count
             odom = inputs.odometry(run.odom[t], odom)
-            inputs.ranges(run.ranges[t], len(run.ranges[0]), run.angle_increment)
+            inputs.ranges(run.ranges[t], beams, run.angle_increment)
         except RuntimeInputError as err:
             raise _at_step(run, t, err) from None
         t0 = time.perf_counter()
-        res = f.update(run.odom[t], scans[t]) if camera is None else camera.step(run.odom[t], scans[t], t).result
+        res = f.update(run.odom[t], scan(t)) if camera is None else camera.step(run.odom[t], scan(t), t).result
         ms = (time.perf_counter() - t0) * 1000.0
-        out["pose"].append(res.pose)
-        out["cov"].append(res.covariance)
-        out["state"].append(res.state.value)
-        out["particles"].append(res.particles)
-        out["updated"].append(res.updated)
-        out["best"].append(res.best_likelihood)
-        out["ms"].append(ms)
+        _put(out, t, res.pose, res.covariance, res.state.value, res.particles, res.updated, res.best_likelihood, ms)
         out["cloud"].append(cloud_of(f.particles, keep_cloud) if res.updated or t == 0 else None)
         if on_step is not None:
             on_step(t, res.pose, res.covariance, res.state.value, f.particles if res.updated or t == 0 else None)
-    out = {k: (v if k in ("state", "cloud") else np.array(v)) for k, v in out.items()}
     out["final_particles"] = f.particles.copy()
     return out
+
+
+def _step_arrays(n: int) -> dict:
+    """A replay's per-step outputs, allocated once (no Python object per step and field)."""
+    return {"pose": np.zeros((n, 3)), "cov": np.zeros((n, 3, 3)), "state": [], "particles": np.zeros(n, np.int64),
+            "updated": np.zeros(n, bool), "best": np.zeros(n), "ms": np.zeros(n), "cloud": []}
+
+
+def _put(out: dict, t: int, pose, cov, state: str, particles: int, updated: bool, best, ms: float) -> None:
+    out["pose"][t], out["cov"][t], out["particles"][t], out["updated"][t] = pose, cov, particles, updated
+    out["best"][t] = np.nan if best is None else best
+    out["ms"][t] = ms
+    out["state"].append(state)
 
 
 def cloud_of(particles: np.ndarray, n: int) -> np.ndarray | None:
@@ -141,7 +149,7 @@ def replay_bundle(run, loc, data: Path, trial: int, keep_cloud: int = 0, on_step
     from pipeline.runtime.sensor import Scan
 
     loc.reset(seed=loc.base_seed + trial)  # trial t: seed + t, whatever was replayed before
-    out = {k: [] for k in ("pose", "cov", "state", "particles", "updated", "best", "ms", "cloud", "candidates")}
+    out = {**_step_arrays(len(run)), "candidates": []}
     seeded = None  # the candidates the filter started from (x, y, theta, weight)
     images = run.image_ids or (None,) * len(run)
     for t in range(len(run)):
@@ -152,16 +160,14 @@ def replay_bundle(run, loc, data: Path, trial: int, keep_cloud: int = 0, on_step
             e = loc.update(run.odom[t], scan, image=image)
         except RuntimeInputError as err:
             raise _at_step(run, t, err) from None
-        out["ms"].append((time.perf_counter() - t0) * 1000.0)
+        ms = (time.perf_counter() - t0) * 1000.0
         if seeded is None and e.candidates is not None:
             seeded = e.candidates
-        for key, value in (("pose", e.pose), ("cov", e.covariance), ("state", e.state), ("particles", e.n_particles),
-                           ("updated", e.updated), ("best", e.best_likelihood), ("candidates", e.candidates)):
-            out[key].append(value)
+        _put(out, t, e.pose, e.covariance, e.state, e.n_particles, e.updated, e.best_likelihood, ms)
+        out["candidates"].append(e.candidates)
         out["cloud"].append(cloud_of(loc.filter.particles, keep_cloud) if e.updated or t == 0 else None)
         if on_step is not None:
             on_step(t, e.pose, e.covariance, e.state, loc.filter.particles if e.updated or t == 0 else None)
-    out = {k: (v if k in ("state", "cloud", "candidates") else np.array(v)) for k, v in out.items()}
     out["final_particles"] = loc.filter.particles.copy()
     out["seed_candidates"] = seeded
     return out
@@ -170,6 +176,8 @@ def replay_bundle(run, loc, data: Path, trial: int, keep_cloud: int = 0, on_step
 def estimate_columns(run, trial: int, rep: dict, err: np.ndarray, err_t: np.ndarray) -> dict:
     """The columns of an `estimates` table for one replay (`replay_one` / `replay_bundle` output, with the
     quality of `quality_of`)."""
+    import pyarrow as pa
+
     from pipeline.runtime.quality import spread_m
 
     n = len(run)
@@ -181,7 +189,9 @@ def estimate_columns(run, trial: int, rep: dict, err: np.ndarray, err_t: np.ndar
             "cov_yy": rep["cov"][:, 1, 1], "cov_tt": rep["cov"][:, 2, 2], "state": rep["state"],
             "particles": rep["particles"], "updated": rep["updated"], "best_likelihood": rep["best"],
             "update_ms": rep["ms"],
-            "agreement": [None] * n if agreement is None else [None if np.isnan(v) else float(v) for v in agreement],
+            # NaN (no usable beam) and "not computed" are nulls; an Arrow array, not a Python float per step
+            "agreement": pa.nulls(n, pa.float64()) if agreement is None else pa.array(np.asarray(agreement, np.float64),
+                                                                                      from_pandas=True),
             "spread_m": rep["spread"] if "spread" in rep else spread_m(rep["cov"][:, 0, 0], rep["cov"][:, 0, 1],
                                                                        rep["cov"][:, 1, 1]),
             "gt_x": gt[:, 0], "gt_y": gt[:, 1], "gt_theta": gt[:, 2],
@@ -323,14 +333,10 @@ def run_localize(
                                 title=f"{title}" + ("" if run.gt is not None else " (no reference: quality rule)"))
                 if on_replay is not None:
                     on_replay(run, rep, tmp)
-        rows = _concatenated(parts)
-        tables.write_table(tmp / "estimates.parquet", tables.to_table("estimates", rows), "estimates",
-                           metadata={"init": init, "method": cfg.filter.method})
-        errs = np.asarray(rows["error_xy"], dtype=np.float64)
-        if np.isfinite(errs).any():
-            run_col = np.array(rows["run"])
-            plots.error_cdf_figure(tmp / "plots" / "error_cdf.png",
-                                   {name: errs[(run_col == name) & np.isfinite(errs)] for name in per_run})
+        write_estimates(tmp / "estimates.parquet", parts, {"init": init, "method": cfg.filter.method})
+        errs = {name: np.concatenate([p["error_xy"] for p in parts if p["run"][0] == name]) for name in per_run}
+        if any(np.isfinite(e).any() for e in errs.values()):
+            plots.error_cdf_figure(tmp / "plots" / "error_cdf.png", {k: e[np.isfinite(e)] for k, e in errs.items()})
         summary = _summary(per_run)
         doc = {"init": init, "method": cfg.filter.method, "sensor_model": cfg.filter.sensor.model,
                "candidates": ("simulated from ground truth: the true pose (0.5 m, 10 deg noise) among random "
@@ -344,16 +350,22 @@ def run_localize(
     return out
 
 
-def _concatenated(parts: list[dict]) -> dict:
-    """The columns of several replays end to end: numeric arrays concatenated, anything else as one list."""
-    out = {}
-    for name in parts[0]:
-        values = [p[name] for p in parts]
-        if all(isinstance(v, np.ndarray) and v.dtype.kind in "biuf" for v in values):
-            out[name] = np.concatenate(values)
-        else:
-            out[name] = [x for v in values for x in v]
-    return out
+#: Rows per row group of estimates.parquet.
+ESTIMATE_ROWS = 8192
+
+
+def write_estimates(path: Path, parts: list[dict], metadata: dict[str, str]) -> Path:
+    """An `estimates` table from the columns of several replays (`estimate_columns`), a row group of at most
+    ESTIMATE_ROWS steps at a time: a long replay's table is never built whole."""
+
+    def chunks():
+        for columns in parts:
+            n = len(columns["step"])
+            for a in range(0, max(n, 1), ESTIMATE_ROWS):
+                yield tables.to_table("estimates", {k: v[a: a + ESTIMATE_ROWS] for k, v in columns.items()})
+
+    tables.write_table_parts(path, chunks(), "estimates", metadata=metadata)
+    return Path(path)
 
 
 def _step_hook(on_step, run, grid_run, lmap, mount, map_from_grid, cfg):

@@ -19,6 +19,7 @@ import numpy as np
 
 from pipeline.errors import ConfigError, InputError, Problem
 from pipeline.io import tables
+from pipeline.io.scan_rows import ScanRows, batch_rows, ipc_rows
 from pipeline.runtime.motion import compose_odometry, odometry_delta, wrap_angle
 
 
@@ -27,7 +28,7 @@ class ReplayRun:
     name: str
     odom: np.ndarray  # (T, 3)
     gt: np.ndarray | None  # (T, 3) or None
-    ranges: np.ndarray  # (T, B) float32
+    ranges: np.ndarray | ScanRows  # (T, B) float32; ScanRows for an Arrow IPC run, read a batch at a time
     angle_min: float
     angle_increment: float
     range_max: float
@@ -41,43 +42,58 @@ class ReplayRun:
 
 def _ranges(path: Path, column) -> np.ndarray:
     """The runs table's list<float32> column as one (T, B) float32 array, read from Arrow's buffers (not through
-    Python lists: a 20-minute 40 Hz run is 17 M readings)."""
+    Python lists)."""
+    arr = column.combine_chunks() if column.num_chunks != 1 else column.chunk(0)
+    return batch_rows(path, arr, None)
+
+
+def _arrow_run(path: Path):
+    """An Arrow IPC runs table read a record batch at a time: its other columns as one table, its ranges as
+    `ScanRows` that read each batch again when a replay reaches it (a 20-minute 40 Hz run is 17 M readings)."""
     import pyarrow as pa
 
-    if isinstance(column, pa.ChunkedArray):  # one chunk (a mapped Arrow file): read in place, no copy
-        arr = column.chunk(0) if column.num_chunks == 1 else column.combine_chunks()
-    else:
-        arr = column
-    lengths = np.unique(arr.value_lengths().to_numpy(zero_copy_only=False)) if len(arr) else np.array([0])
-    if len(lengths) != 1:
-        raise InputError(f"{path}: scans of different lengths {lengths[:5].tolist()}",
-                         [Problem(str(path), "every scan of a run must have the same beams")])
-    values = arr.flatten().to_numpy(zero_copy_only=False).astype(np.float32, copy=False)
-    return values.reshape(len(arr), int(lengths[0]))
+    small, lengths, width = [], [], None
+    for part in tables.read_table_batches(path, "runs"):
+        col = part.column("ranges").combine_chunks()
+        width = batch_rows(path, col, width, first_row=sum(lengths)).shape[1] if len(col) else width
+        lengths.append(part.num_rows)
+        # take() copies: a column read from an IPC batch is a slice of the batch's body, ranges included
+        small.append(part.drop_columns(["ranges"]).take(np.arange(part.num_rows)))
+    table = pa.concat_tables(small) if small else None
+    return table, ipc_rows(path, "ranges", lengths, width or 0)
 
 
 def load_run(path: Path) -> ReplayRun:
-    table = tables.read_table(path, "runs")
-    ranges = _ranges(path, table.column("ranges"))
-    cols = table.drop_columns(["ranges"]).to_pydict()
-    if table.num_rows < 2:
-        raise InputError(f"{path}: a run needs at least 2 steps", [Problem(str(path), f"{table.num_rows} rows")])
+    if Path(path).suffix == ".arrow":
+        table, ranges = _arrow_run(Path(path))
+    else:
+        table = tables.read_table(path, "runs")
+        ranges = _ranges(path, table.column("ranges"))
+        table = table.drop_columns(["ranges"])
+    rows = 0 if table is None else table.num_rows
+    if rows < 2:
+        raise InputError(f"{path}: a run needs at least 2 steps", [Problem(str(path), f"{rows} rows")])
+
+    def col(name, dtype=np.float64):
+        return table.column(name).to_numpy().astype(dtype, copy=False)
+
     gt = None
-    if all(v is not None for v in cols["gt_x"]):
-        gt = np.column_stack([cols["gt_x"], cols["gt_y"], cols["gt_theta"]]).astype(np.float64)
-    kidnapped = np.array([bool(v) for v in cols["kidnapped"]]) if cols.get("kidnapped") else np.zeros(table.num_rows,
-                                                                                                    bool)
+    if all(table.column(c).null_count == 0 for c in ("gt_x", "gt_y", "gt_theta")):
+        gt = np.column_stack([col("gt_x"), col("gt_y"), col("gt_theta")])
+    kidnapped = (table.column("kidnapped").fill_null(False).to_numpy() if "kidnapped" in table.column_names
+                 else np.zeros(rows, bool)).astype(bool)
+    first = table.slice(0, 1).to_pydict()
     return ReplayRun(
-        name=path.stem,
-        odom=np.column_stack([cols["odom_x"], cols["odom_y"], cols["odom_theta"]]).astype(np.float64),
+        name=Path(path).stem,
+        odom=np.column_stack([col("odom_x"), col("odom_y"), col("odom_theta")]),
         gt=gt,
         ranges=ranges,
-        angle_min=float(cols["angle_min"][0]),
-        angle_increment=float(cols["angle_increment"][0]),
-        range_max=float(cols["range_max"][0]),
+        angle_min=float(first["angle_min"][0]),
+        angle_increment=float(first["angle_increment"][0]),
+        range_max=float(first["range_max"][0]),
         kidnapped=kidnapped,
-        image_ids=tuple(cols["image_id"]) if "image_id" in cols else None,
-        t=np.asarray(cols["t"], dtype=np.float64),
+        image_ids=tuple(table.column("image_id").to_pylist()) if "image_id" in table.column_names else None,
+        t=col("t"),
     )
 
 

@@ -228,9 +228,8 @@ def render_report(doc: dict) -> str:
 def run_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str, Path], force: bool = False,
                  progress: bool = True) -> Path:
     from pipeline.evaluation import report_figures as figs
-    from pipeline.io import tables
     from pipeline.io.atomic import atomic_dir, check_output, write_text_atomic
-    from pipeline.localize import estimate_columns
+    from pipeline.localize import estimate_columns, write_estimates
     from pipeline.machine import machine_summary
     from pipeline.runtime.localizer import Localizer
 
@@ -262,7 +261,7 @@ def run_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[s
     with atomic_dir(out, force=force, inputs=inputs.values()) as tmp:
         truth_written: set[str] = set()
         for m, reps in results.items():
-            rows: dict[str, list] = {f.name: [] for f in tables.ESTIMATES}
+            parts = []
             for r in reps:
                 stamps = step_stamps(by_name[r.run].t, len(r.pose))
                 write_tum(tmp / "trajectories" / m / f"{r.run}_trial{r.trial}.tum", r.pose, stamps)
@@ -270,12 +269,10 @@ def run_evaluate(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[s
                     write_tum(tmp / "trajectories" / f"{r.run}_groundtruth.tum", r.gt, stamps)
                     truth_written.add(r.run)
                 err_t = np.abs(wrap_angle(r.pose[:, 2] - r.gt[:, 2]))
-                for k, v in estimate_columns(by_name[r.run], r.trial, r.rep, r.errors, err_t).items():
-                    rows[k].extend(list(v))
-            tables.write_table(tmp / "estimates" / f"{m}.parquet", tables.to_table("estimates", rows), "estimates",
-                               metadata={"method": m,
-                                         "init": "retrieval" if m in ("proposed", "image_reloc", "sequence")
-                                         else "uniform"})
+                parts.append(estimate_columns(by_name[r.run], r.trial, r.rep, r.errors, err_t))
+            write_estimates(tmp / "estimates" / f"{m}.parquet", parts,
+                            {"method": m, "init": "retrieval" if m in ("proposed", "image_reloc", "sequence")
+                             else "uniform"})
         figs.figure8_error_cdf(tmp / "fig8_error_cdf.png", results,
                                {"with": PAPER["p90_with_m"], "without": PAPER["p90_without_m"]})
         figs.figure9_particles(tmp / "fig9_particles.png", results)

@@ -334,6 +334,27 @@ def read_table(path: Path, kind: str) -> pa.Table:
     return table.select(contract.names).cast(_with_metadata(contract, kind, None).with_metadata(meta))
 
 
+def read_table_batches(path: Path, kind: str):
+    """The record batches of an Arrow IPC table (`.arrow`) one at a time, each checked and cast as
+    `read_table` casts the whole; read, not mapped, so a table larger than memory is never held whole."""
+    path = Path(path)
+    _exists(path, kind)
+    try:
+        reader = pa.ipc.open_file(pa.OSFile(str(path)))
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise InputError(f"{path}: not a readable Arrow IPC file", [Problem(str(path), str(exc))]) from None
+    _check_schema(path, kind, reader.schema)
+    contract = _contract(kind, reader.schema.empty_table())
+    schema = _with_metadata(contract, kind, None).with_metadata(reader.schema.metadata or {})
+    for i in range(reader.num_record_batches):
+        try:
+            batch = reader.get_batch(i)
+        except (pa.ArrowInvalid, OSError) as exc:
+            raise InputError(f"{path}: not a readable Arrow IPC file", [Problem(f"{path} record batch {i}",
+                                                                                str(exc))]) from None
+        yield pa.Table.from_batches([batch]).select(contract.names).cast(schema)
+
+
 def read_table_schema(path: Path, kind: str) -> pa.Schema:
     """The schema of a Parquet table, checked as `read_table` checks it, without reading its rows."""
     path = Path(path)

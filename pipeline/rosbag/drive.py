@@ -169,8 +169,7 @@ def _odometry_report(rec: Recording, odom_f: str, base: str, stamps: np.ndarray)
     from pipeline.rosbag.transforms import TfBuffer
 
     other = TfBuffer(rec.tf.max_gap, rec.tf.tolerance)
-    for stamp, xyz, quat in rec.odom_msgs:
-        other.add("odom", "base", stamp, xyz, quat, static=False)
+    other.edges["base"] = rec.odom_msgs
     a, b = rec.tf.lookup(odom_f, base, stamps), other.lookup("odom", "base", stamps)
     both = a.valid & b.valid
     if not both.any():

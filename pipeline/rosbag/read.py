@@ -18,12 +18,13 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import InputError, Problem
+from pipeline.io.scan_rows import ScanRows, ScanSpool
 from pipeline.io.site import Camera, Distortion
 from pipeline.rosbag.bagfile import bag_name, messages, open_reader
 from pipeline.rosbag.messages import CAMERA_INFO, COMPRESSED, GRID, IMAGE, ODOMETRY, SCAN, TF, stamp_of
 from pipeline.rosbag.messages import field as msg_field
 from pipeline.rosbag.scans import Grid, cleaned, counter_clockwise, resample
-from pipeline.rosbag.transforms import TfBuffer
+from pipeline.rosbag.transforms import Edge, TfBuffer
 
 ENCODINGS = ("rgb8", "bgr8", "mono8", "jpeg", "png")
 ROLE_TYPES = {"camera": (COMPRESSED, IMAGE), "camera_info": (CAMERA_INFO,), "scan": (SCAN,), "odom": (ODOMETRY,),
@@ -42,7 +43,7 @@ class Recording:
     camera_frame: str | None = None
     intrinsics: Camera | None = None
     scan_stamps: np.ndarray | None = None
-    ranges: np.ndarray | None = None  # (N, beams) float32
+    ranges: ScanRows | None = None  # (N, beams) float32, read from a spool file a block at a time
     laser: dict | None = None  # angle_min, angle_increment, beams, range_min, range_max (radians, m), CCW
     resampled_scans: int = 0  # scans whose beam count or sweep differed from the first's (scans.resample)
     laser_frame: str | None = None
@@ -53,7 +54,7 @@ class Recording:
     topics: dict[str, str] = field(default_factory=dict)  # role -> topic
     dropped: list[dict] = field(default_factory=list)
     messages: int = 0  # messages read
-    odom_msgs: list = field(default_factory=list)  # (stamp, xyz, quat) of the odometry topic
+    odom_msgs: Edge = field(default_factory=lambda: Edge("odom", "base", False))  # the odometry topic's poses
     odometry_source: str | None = None  # "tf" (odom -> base in /tf) or "topic" (the odometry topic)
 
 
@@ -159,29 +160,7 @@ def _intrinsics(path: Path, topic: str, index: int, msg) -> Camera:
                   cy=float(k[5]), distortion=distortion)
 
 
-class _Rows:
-    """Scans gathered into one array allocated once (the topic's message count is known up front): a long
-    recording's ranges are held once, not as a list and then a stacked copy."""
-
-    def __init__(self, capacity: int):
-        self.capacity, self.n, self.array = capacity, 0, None
-
-    def append(self, row: np.ndarray) -> None:
-        if self.array is None:
-            self.array = np.empty((max(self.capacity, 1), len(row)), dtype=np.float32)
-        if self.n == len(self.array):  # more messages than the index said: grow
-            self.array = np.concatenate([self.array, np.empty_like(self.array)])
-        self.array[self.n] = row
-        self.n += 1
-
-    def __len__(self) -> int:
-        return self.n
-
-    def stacked(self) -> np.ndarray:
-        return self.array[: self.n]
-
-
-def _scan(rec: Recording, path: Path, topic: str, index: int, msg, scans: _Rows) -> None:
+def _scan(rec: Recording, path: Path, topic: str, index: int, msg, scans: ScanSpool) -> None:
     """One LaserScan onto the recording's beam grid (the first scan's; `pipeline.rosbag.scans`)."""
     n, inc = len(msg.ranges), float(msg.angle_increment)
     if n < 2 or inc == 0 or not math.isfinite(inc) or not math.isfinite(float(msg.angle_min)):
@@ -230,7 +209,7 @@ def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dic
         counts = {t: 0 for t in wanted}
         last_stamp: dict[str, float] = {}
         scan_stamps, sizes = [], []
-        scans = _Rows(sum(c.msgcount for c in conns if c.topic == topics.get("scan")))
+        scans = ScanSpool()  # on disk, read back a block at a time: a long drive's scans are never all held
         first_info: tuple[int, Camera] | None = None
         total = sum(c.msgcount for c in conns)
         msgs = messages(reader, path, conns)
@@ -276,7 +255,7 @@ def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dic
                 p, q = msg.pose.pose.position, msg.pose.pose.orientation
                 rec.odom_frame = rec.odom_frame or msg.header.frame_id.lstrip("/")
                 rec.base_frame = rec.base_frame or msg.child_frame_id.lstrip("/")
-                rec.odom_msgs.append((stamp, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)))
+                rec.odom_msgs.add(stamp, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w))
             elif role == "camera_info":
                 k = _intrinsics(path, topic, index, msg)
                 if first_info is None:
@@ -295,10 +274,10 @@ def read_recording(path: Path, roles: dict[str, str] | None = None, offsets: dic
                 scan_stamps.append(stamp)
     rec.messages = sum(counts.values())
     if len(scans):
-        rec.ranges, rec.scan_stamps = scans.stacked(), np.asarray(scan_stamps)
+        rec.ranges, rec.scan_stamps = scans.rows(), np.asarray(scan_stamps)
     if rec.odom_msgs and rec.tf.path(rec.odom_frame, rec.base_frame) is None:  # only on /odom: it is the edge
-        for stamp, xyz, quat in rec.odom_msgs:
-            rec.tf.add(rec.odom_frame, rec.base_frame, stamp, xyz, quat, static=False)
+        for stamp, xyz, quat in zip(*rec.odom_msgs.arrays(), strict=True):
+            rec.tf.add(rec.odom_frame, rec.base_frame, float(stamp), xyz, quat, static=False)
         rec.odometry_source = "topic"
     elif rec.tf.edges:
         rec.odometry_source = "tf"

@@ -21,6 +21,7 @@ import numpy as np
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import ConfigError, InputError, Problem
 from pipeline.io.atomic import check_output, write_text_atomic
+from pipeline.io.scan_rows import BLOCK_ROWS
 from pipeline.rosbag.drive import (
     BagOptions,
     Drive,
@@ -74,12 +75,17 @@ def bag_dataset(bag: Path, root: Path, opts: BagOptions, cfg: SitelocConfig, map
         (root / rel).parent.mkdir(parents=True, exist_ok=True)
         (root / rel).write_bytes(data)
         images.append(rel)
-    capture = CaptureRun(rec.name, run["t"], run["odom"], run["gt"], np.asarray(run["ranges"], np.float32), images,
-                         list(run["kidnapped"]))
     from pipeline.ingest import run_table
 
-    # Arrow IPC, not Parquet: `localize` maps it instead of decoding a copy (a 20-minute 40 Hz run is 17 M readings)
-    tables.write_table(root / "runs" / f"{rec.name}.arrow", run_table(capture, laser, site.name), "runs")
+    def parts():  # a record batch of BLOCK_ROWS steps at a time: the ranges are read from the spool, never all held
+        n = len(run["t"])
+        for a in range(0, max(n, 1), BLOCK_ROWS):
+            s = slice(a, a + BLOCK_ROWS)
+            yield run_table(CaptureRun(rec.name, run["t"][s], run["odom"][s], run["gt"][s], run["ranges"][s],
+                                       images[s], list(run["kidnapped"][s])), laser, site.name, first_step=a)
+
+    # Arrow IPC, not Parquet: `localize` reads it a record batch at a time (`load_run`)
+    tables.write_table_parts(root / "runs" / f"{rec.name}.arrow", parts(), "runs")
     return drive
 
 
@@ -151,7 +157,7 @@ def _recorded(drive: Drive, data: Path) -> dict:
     laser = read_site(data / "site.yaml").laser
     f = drive.report["frames"]
     return {"stamps": run["t0"] + np.asarray(run["t"]), "map": read_map(data / "map.yaml"),
-            "odom": np.asarray(run["odom"]), "ranges": np.asarray(run["ranges"], np.float32),
+            "odom": np.asarray(run["odom"]), "ranges": run["ranges"],
             "angle_min": laser.angle_min, "angle_increment": laser.angle_increment,
             "base_from_laser": (laser.mount.x, laser.mount.y, np.radians(laser.mount.yaw_deg)),
             "frames": {"map": "map", "odom": f["odom"], "base": f["base"], "laser": f"{rec.laser_frame or 'laser'}_2d"},

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.io.map_yaml import OccupancyMap
+from pipeline.io.scan_rows import ScanRows
 
 TOPICS = {
     "map": "/map",
@@ -57,7 +58,7 @@ class ReplayStream:
     map: OccupancyMap
     odom: np.ndarray  # (T, 3) odom_from_base
     base_from_laser: tuple[float, float, float]  # x, y, yaw of the laser on the base
-    ranges: np.ndarray  # (T, B)
+    ranges: np.ndarray | ScanRows  # (T, B)
     angle_min: float
     angle_increment: float
     range_min: float
@@ -90,8 +91,9 @@ class ReplayStream:
             if arr.shape != shape:
                 raise ValueError(f"{name} has shape {arr.shape}, expected {shape} ({n} steps)")
             put(name, arr)
-        ranges = np.asarray(self.ranges, dtype=np.float32)
-        if ranges.ndim != 2 or ranges.shape[0] != n:
+        # rows read from disk a block at a time (a long recording's) stay so; the writer reads one row a step
+        ranges = self.ranges if isinstance(self.ranges, ScanRows) else np.asarray(self.ranges, dtype=np.float32)
+        if len(ranges.shape) != 2 or ranges.shape[0] != n:
             raise ValueError(f"ranges has shape {ranges.shape}, expected ({n}, beams)")
         put("ranges", ranges)
         mount = tuple(float(v) for v in self.base_from_laser)

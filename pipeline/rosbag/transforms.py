@@ -8,6 +8,7 @@ the caller can report it. Poses are named by their frames: `lookup("map", "base_
 
 from __future__ import annotations
 
+from array import array
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,17 +47,30 @@ def from_floor_pose(poses: np.ndarray, z: float = 0.0) -> Transforms:
 
 @dataclass
 class Edge:
+    """One parent -> child edge's transforms, kept in flat float arrays (8 bytes a number, not a Python object:
+    a long recording's tf is hundreds of thousands of transforms)."""
+
     parent: str
     child: str
     static: bool
-    stamps: list[float] = field(default_factory=list)
-    xyz: list[tuple[float, float, float]] = field(default_factory=list)
-    quat: list[tuple[float, float, float, float]] = field(default_factory=list)  # x, y, z, w
+    stamps: array = field(default_factory=lambda: array("d"))
+    xyz: array = field(default_factory=lambda: array("d"))  # x, y, z per transform
+    quat: array = field(default_factory=lambda: array("d"))  # x, y, z, w per transform
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def add(self, stamp: float, xyz, quat) -> None:
+        self.stamps.append(stamp)
+        self.xyz.extend(xyz)
+        self.quat.extend(quat)
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        t = np.asarray(self.stamps, dtype=np.float64)
+        t = np.array(self.stamps, dtype=np.float64)  # copies: the arrays stay free to grow
         order = np.argsort(t, kind="stable")
-        return t[order], np.asarray(self.xyz)[order], np.asarray(self.quat)[order]
+        xyz = np.array(self.xyz, dtype=np.float64).reshape(-1, 3)
+        quat = np.array(self.quat, dtype=np.float64).reshape(-1, 4)
+        return t[order], xyz[order], quat[order]
 
 
 class TfBuffer:
@@ -77,11 +91,9 @@ class TfBuffer:
             return f"frame '{child}' has two parents, '{edge.parent}' and '{parent}'"
         if static:
             edge.static = True
-            edge.stamps, edge.xyz, edge.quat = [stamp], [tuple(xyz)], [tuple(quat)]
+            edge.stamps, edge.xyz, edge.quat = array("d", [stamp]), array("d", xyz), array("d", quat)
         else:
-            edge.stamps.append(stamp)
-            edge.xyz.append(tuple(xyz))
-            edge.quat.append(tuple(quat))
+            edge.add(stamp, xyz, quat)
         self._cache.pop(child, None)
         return None
 
@@ -152,7 +164,7 @@ class TfBuffer:
         e = self.edges[child]
         if e.static:
             return []
-        t = np.unique(np.asarray(e.stamps))
+        t = np.unique(np.array(e.stamps, dtype=np.float64))
         d = np.diff(t)
         limit = self.max_gap if min_gap is None else min_gap
         return [(float(t[i]), float(t[i + 1])) for i in np.nonzero(d > limit)[0]]

@@ -41,10 +41,12 @@ def beam_agreement(lmap: LaserMap, poses: np.ndarray, ranges: np.ndarray, angle_
 
     Usable: finite, positive (0 is an error code), >= range_min and < range_max (a beam with an endpoint), among
     the `max_beams` the filter's subsampling keeps (None: all). NaN where a step has no usable beam or its pose
-    is not finite. Steps go through in chunks of `chunk`: memory stays at chunk x beams whatever the length."""
+    is not finite. Steps go through in chunks of `chunk` (`ranges` is only sliced: it may be rows read from disk
+    a block at a time): memory stays at chunk x beams whatever the length."""
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-    ranges = np.asarray(ranges)
-    if ranges.ndim != 2 or len(ranges) != len(poses):
+    if not hasattr(ranges, "shape"):  # an array, or rows read a block at a time (anything sliced into arrays)
+        ranges = np.asarray(ranges)
+    if len(ranges.shape) != 2 or len(ranges) != len(poses):
         raise ValueError(f"ranges must be (N, B) with N = {len(poses)} poses, got {ranges.shape}")
     idx = subsample(ranges.shape[1], max_beams) if max_beams else np.arange(ranges.shape[1])
     angles = angle_min + angle_increment * idx.astype(np.float64)
@@ -54,7 +56,7 @@ def beam_agreement(lmap: LaserMap, poses: np.ndarray, ranges: np.ndarray, angle_
     chunk = max(int(chunk), 1)
     for a in range(0, len(poses), chunk):
         lp = laser_poses(poses[a: a + chunk], tuple(base_from_laser))
-        r = ranges[a: a + chunk, idx].astype(np.float64)
+        r = np.asarray(ranges[a: a + chunk])[:, idx].astype(np.float64)
         with np.errstate(invalid="ignore"):  # NaN compares False: not usable
             usable = (r > 0) & (r >= range_min) & (r < range_max) & np.isfinite(lp).all(axis=1)[:, None]
         r = np.where(usable, r, 0.0)  # no NaN or inf reaches the cell arithmetic
