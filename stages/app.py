@@ -17,6 +17,7 @@ from stages import (
     ingest,
     ingest_log,
     localize,
+    places,
     prior,
     retrieval,
     sequence,
@@ -57,6 +58,7 @@ app.command("extract", help=help_text(retrieval.EXTRACT_HELP))(retrieval.extract
 app.command("build-index", help=help_text(retrieval.INDEX_HELP))(retrieval.build_index)
 app.command("query", help=help_text(retrieval.QUERY_HELP))(retrieval.query)
 app.command("evaluate-retrieval", help=help_text(retrieval.EVALUATE_HELP))(retrieval.evaluate_retrieval)
+app.command("evaluate-places", help=help_text(places.HELP))(places.evaluate_places)
 app.command("frame-features", help=help_text(sequence.FRAMES_HELP))(sequence.frame_features)
 app.command("train-sequence", help=help_text(sequence.TRAIN_HELP))(sequence.train_sequence)
 app.command("export", help=help_text(export.HELP))(export.export)

@@ -38,6 +38,7 @@ def set_opt(example: str) -> Any:
 
 
 SetOpt = set_opt("ingest.split.seed=3")
+OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)]
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Show full tracebacks on errors.")]
 ForceOpt = Annotated[bool, typer.Option("--force", "-f", help="Replace an existing output (atomically).")]
 

@@ -12,6 +12,7 @@ from stages.common import (
     EngineOpt,
     Executor,
     ForceOpt,
+    OutOpt,
     RayAddressOpt,
     VerboseOpt,
     cli_errors,
@@ -95,7 +96,6 @@ Example: siteloc prior evaluate data/reference/multilayer --bundle bundles/offic
 
 app = typer.Typer(help=help_text(APP_HELP), no_args_is_help=True, add_completion=False,
                   context_settings={"help_option_names": ["-h", "--help"]})
-OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)]
 
 
 @app.command("features", help=help_text(FEATURES_HELP))

@@ -12,6 +12,7 @@ from stages.common import (
     EngineOpt,
     Executor,
     ForceOpt,
+    OutOpt,
     RayAddressOpt,
     VerboseOpt,
     cli_errors,
@@ -20,8 +21,6 @@ from stages.common import (
     load,
     set_opt,
 )
-
-OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Output directory.", show_default=False)]
 
 EXTRACT_HELP = """Extract IPA and RPA descriptors of every image of an ingested site with a trained detector.
 

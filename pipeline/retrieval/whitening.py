@@ -5,6 +5,8 @@
   dimension is capped by what the data supports: at most min(n_components, n_samples - 1, n_features)
   axes, and only axes whose variance is above `rel_eps` times the largest (`cap_reason_` says which
   limit applied).
+- `ShrinkageWhitening`: PCA whitening with the variances regularised by as much as the ratio of dimensions
+  to samples calls for, so a small database cannot be over-whitened (docs/retrieval.md#whitening).
 - `LearnedWhitening` (Radenovic, Tolias & Chum 2016, "Lw"): supervised, from pairs of descriptors known
   to show the same place (here: geo-tags within a distance and heading). The intra-pair scatter C_S is
   whitened away first (C_S^-1/2), then the whitened data's own covariance is diagonalised and its largest
@@ -90,6 +92,44 @@ class PCAWhitening(_Saved):
 
     def transform(self, x: np.ndarray, *, normalize: bool = True) -> np.ndarray:
         y = (np.asarray(x, dtype=np.float32) - self.mean_) @ self.components_.T / np.sqrt(self.explained_variance_)
+        return l2_normalize(y) if normalize else y
+
+
+class ShrinkageWhitening(_Saved):
+    """PCA whitening with every axis' variance raised by `regularization` times the mean variance before
+    dividing: axes the database estimates well are whitened, axes it cannot estimate (a few images in many
+    dimensions) are left nearly as they are instead of being blown up. With `regularization` None it is
+    chosen from the data: `per_dimension` x dimensions / (samples - 1), large for a small database (close
+    to the identity after centring) and small for a large one (close to PCA whitening). Every dimension
+    is kept."""
+
+    KIND = "shrinkage_whitening"
+    PARAMS = ("regularization", "per_dimension")
+    FITTED = ("mean_", "projection_", "regularization_", "n_components_", "cap_reason_")
+
+    def __init__(self, regularization: float | None = None, per_dimension: float = 10.0):
+        self.regularization, self.per_dimension = regularization, per_dimension
+
+    def fit(self, x: np.ndarray) -> ShrinkageWhitening:
+        x = np.asarray(x, dtype=np.float64)
+        n, d = x.shape
+        if n < 2:
+            raise ValueError(f"whitening needs at least 2 descriptors, got {n}")
+        mean = x.mean(axis=0)
+        w, v = np.linalg.eigh((x - mean).T @ (x - mean) / (n - 1))
+        w = np.maximum(w, 0.0)
+        rho = self.per_dimension * d / (n - 1) if self.regularization is None else float(self.regularization)
+        eps = rho * max(w.mean(), 1e-12)
+        self.mean_ = mean.astype(np.float32)
+        # the symmetric (ZCA) form: with much regularisation the projection tends to the identity itself
+        self.projection_ = ((v * (np.sqrt(w.mean() + eps) / np.sqrt(w + eps))) @ v.T).astype(np.float32)
+        self.regularization_ = float(rho)
+        self.n_components_ = d
+        self.cap_reason_ = "features"
+        return self
+
+    def transform(self, x: np.ndarray, *, normalize: bool = True) -> np.ndarray:
+        y = (np.asarray(x, dtype=np.float32) - self.mean_) @ self.projection_.T
         return l2_normalize(y) if normalize else y
 
 

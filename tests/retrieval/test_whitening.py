@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import InputError
-from pipeline.retrieval.whitening import LearnedWhitening, PCAWhitening, geo_pairs, l2_normalize
+from pipeline.retrieval.whitening import LearnedWhitening, PCAWhitening, ShrinkageWhitening, geo_pairs, l2_normalize
 
 
 def _data(n=400, d=16, seed=0):
@@ -80,3 +80,36 @@ def test_geo_pairs_against_brute_force():
             if np.hypot(*(xy[i] - xy[j])) <= 2.0 and dth <= np.radians(45) and group[i] != group[j]:
                 want.add((i, j))
     assert got == want and want
+
+
+def test_shrinkage_whitening_is_pca_whitening_without_regularisation_and_the_identity_with_much():
+    x = _data()
+    full = ShrinkageWhitening(regularization=0.0).fit(x).transform(x, normalize=False)
+    pca = PCAWhitening().fit(x).transform(x, normalize=False)
+    # the same whitening up to a rotation and a scale: equal Gram matrices once scaled
+    gram_a, gram_b = full @ full.T, pca @ pca.T
+    np.testing.assert_allclose(gram_a / gram_a.trace(), gram_b / gram_b.trace(), atol=1e-6)
+    w = ShrinkageWhitening(regularization=1e6).fit(x)
+    centred = l2_normalize(x - x.mean(axis=0))
+    np.testing.assert_allclose(np.sum(w.transform(x) * centred, axis=1), 1.0, atol=1e-4)  # only centring left
+
+
+def test_shrinkage_regularisation_follows_the_ratio_of_dimensions_to_samples():
+    assert ShrinkageWhitening().fit(_data(n=401, d=16)).regularization_ == pytest.approx(10 * 16 / 400)
+    assert ShrinkageWhitening(per_dimension=2.0).fit(_data(n=9, d=16)).regularization_ == pytest.approx(2 * 16 / 8)
+    few = ShrinkageWhitening().fit(_data(n=9, d=16))
+    assert few.n_components_ == 16  # every dimension kept, none divided by a variance 9 samples cannot give
+    # with few samples the whitened similarities stay close to the centred ones; PCA whitening's do not
+    x = _data(n=9, d=16)
+    centred = l2_normalize(x - x.mean(axis=0))
+    near = np.abs(few.transform(x) @ few.transform(x).T - centred @ centred.T).max()
+    far = np.abs(PCAWhitening().fit(x).transform(x) @ PCAWhitening().fit(x).transform(x).T - centred @ centred.T).max()
+    assert near < 0.1 < far
+
+
+def test_shrinkage_whitening_round_trips(tmp_path):
+    x = _data()
+    w = ShrinkageWhitening().fit(x)
+    back = ShrinkageWhitening.load(w.save(tmp_path / "s.npz"))
+    np.testing.assert_array_equal(back.transform(x), w.transform(x))
+    assert back.regularization is None and back.regularization_ == w.regularization_
