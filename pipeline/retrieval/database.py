@@ -1,6 +1,6 @@
 """Stage `build-index`: the retrieval database the runtime queries, and the query function it reuses.
 
-`run_build_index` fits the configured whitening (`retrieval.whitening`: pca, learned or none) on the
+`run_build_index` fits the configured whitening (`retrieval.whitening`: pca, shrinkage, learned or none) on the
 database images of an extraction (the ingest's `train` stops), applies it, and writes into its output:
 `database_ipa.parquet` and `database_rpa.parquet` (whitened, l2-normalised), `catalog.parquet` (poses),
 `ipa_whitening.npz` / `rpa_whitening.npz` (arrays only) and `config.yaml`. An extraction with a retrieval
@@ -107,7 +107,7 @@ def load_database(path: Path, *, index: str | None = None, params=None) -> Retri
     from its ipa_index.faiss when saved; another kind is built now, with `params`)."""
     from pipeline.retrieval.index import INDEX_FILE, FaissIndex, make_index
     from pipeline.retrieval.search import Database, as_rows
-    from pipeline.retrieval.whitening import LearnedWhitening, PCAWhitening
+    from pipeline.retrieval.whitening import LearnedWhitening, PCAWhitening, ShrinkageWhitening
 
     path = Path(path)
     ipa_t = tables.read_table(path / "database_ipa.parquet", "ipa")
@@ -126,7 +126,8 @@ def load_database(path: Path, *, index: str | None = None, params=None) -> Retri
     db = Database(ids, np.column_stack([cat["x"], cat["y"], cat["theta"]]), tables.descriptor_matrix(ipa_t),
                   as_rows(tables.descriptor_chunks(rpa_t)), offsets, paged=rpa_path.suffix == ".arrow")
     settings = json.loads((path / "report.json").read_text())
-    whitening = {"pca": PCAWhitening, "learned": LearnedWhitening}.get(settings["whitening"])
+    whitening = {"pca": PCAWhitening, "shrinkage": ShrinkageWhitening, "learned": LearnedWhitening}.get(
+        settings["whitening"])
     w_ipa = whitening.load(path / "ipa_whitening.npz") if whitening else None
     w_rpa = PCAWhitening.load(path / "rpa_whitening.npz") if whitening else None
     built = settings.get("index", "exact")

@@ -98,7 +98,7 @@ def query_regions(ex: Extracted, i: int, n: int) -> np.ndarray:
 
 def fit_whitenings(ex: Extracted, db: np.ndarray, kind: str, cfg) -> tuple:
     """(IPA transform, RPA transform) fitted on the database; identity functions for 'none'."""
-    from pipeline.retrieval.whitening import LearnedWhitening, PCAWhitening, geo_pairs
+    from pipeline.retrieval.whitening import LearnedWhitening, PCAWhitening, ShrinkageWhitening, geo_pairs
 
     if kind == "none":
         return None, None
@@ -108,6 +108,8 @@ def fit_whitenings(ex: Extracted, db: np.ndarray, kind: str, cfg) -> tuple:
     rpa_w = PCAWhitening(cfg.rpa_dims).fit(ex.regions_at(np.sort(sample)))
     if kind == "pca":
         return PCAWhitening(cfg.ipa_dims).fit(ex.ipa[db]), rpa_w
+    if kind == "shrinkage":
+        return ShrinkageWhitening().fit(ex.ipa[db]), rpa_w
     pairs = geo_pairs(ex.poses[db, :2], ex.poses[db, 2], ex.groups[db], max_distance=cfg.pair_distance,
                       max_heading_deg=cfg.pair_heading_deg)
     if len(pairs) < 2 * ex.ipa.shape[1]:
@@ -230,7 +232,7 @@ def run_evaluate_retrieval(cfg: SitelocConfig, *, inputs: dict[str, Path], outpu
                                   "retrieval needs train stops (database) and test stops or query runs",
                                   fix="ingest with a test share, or synthesise query runs")])
     results, rankings, skipped = {}, {}, {}
-    for whitening in ("none", "pca", "learned"):
+    for whitening in ("none", "pca", "shrinkage", "learned"):
         try:
             ranked = rank_all(ex, db, qx, queries, whitening, r)
         except InputError as exc:

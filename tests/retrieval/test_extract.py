@@ -205,16 +205,16 @@ def test_cli_builds_the_index_evaluates_and_answers_a_query(site, extracted, tmp
     res = runner.invoke(app, ["build-index", str(extracted), "--out", str(tmp_path / "idx"), "-c", "ci", *sets])
     assert res.exit_code == 0, res.output
     report = json.loads((tmp_path / "idx" / "report.json").read_text())
-    assert report["whitening"] == "pca" and report["ipa_dim"] <= 112
+    assert report["whitening"] == "shrinkage" and report["ipa_dim"] <= 112
     res = runner.invoke(app, ["evaluate-retrieval", str(extracted), str(ing), "--out", str(tmp_path / "ev"), "-c",
                               "ci", *sets])
     assert res.exit_code == 0, res.output
     m = json.loads((tmp_path / "ev" / "metrics.json").read_text())
     assert set(m["variants"]) | {f"{s} / {w}" for w in m["skipped"] for s in ("ipa", "ipa+rpa")} == {
-        f"{s} / {w}" for s in ("ipa", "ipa+rpa") for w in ("none", "pca", "learned")}
-    assert "ipa+rpa / pca" in m["variants"]
+        f"{s} / {w}" for s in ("ipa", "ipa+rpa") for w in ("none", "pca", "shrinkage", "learned")}
+    assert "ipa+rpa / shrinkage" in m["variants"]
     sources = m["by_source"]["sources"]
-    assert m["by_source"]["variant"] == "ipa+rpa / pca" and set(sources) <= {"test stops", "run frames"}
+    assert m["by_source"]["variant"] == "ipa+rpa / shrinkage" and set(sources) <= {"test stops", "run frames"}
     assert sum(t["queries"] for t in sources.values()) == m["query_images"]
     for v in m["variants"].values():
         for key, t in v.items():
@@ -224,7 +224,7 @@ def test_cli_builds_the_index_evaluates_and_answers_a_query(site, extracted, tmp
     assert (tmp_path / "ev" / "recall.png").is_file() and (tmp_path / "ev" / "examples.png").is_file()
     from tests.tracked_files import approx, read_headline, read_plot
 
-    main = {s: m["variants"][f"{v} / pca"]["2m_30deg"] for s, v in (("ipa", "ipa"), ("ipa_rpa", "ipa+rpa"))}
+    main = {s: m["variants"][f"{v} / shrinkage"]["2m_30deg"] for s, v in (("ipa", "ipa"), ("ipa_rpa", "ipa+rpa"))}
     assert read_headline(tmp_path / "ev") == {s: {"map_at_4": approx(t["map_at_4"]),
                                                   "recall_at_1": approx(t["recall_at_1"])} for s, t in main.items()}
     curve = read_plot(tmp_path / "ev", "recall_at_n", ["n", "ipa", "ipa_rpa"])
