@@ -192,9 +192,13 @@ def query(
         det = load_detector(model, device=r.device)
         backbone = load_backbone(r.backbone, r.backbone_weights)  # the one the index was extracted with, or refused
         check_backbone(recorded_backbone(index), backbone, index)
+        from pipeline.retrieval.descriptors import check_pooling
+
+        check_pooling(index / "report.json", r.pooling, r.gem_p)  # the index's IPA pooling, or refused
         answers = {}
         for path in images:
-            d = describe(det, [load_image(path)], r.rpa_proposals, r.rpa_min_score, backbone=backbone)[0]
+            d = describe(det, [load_image(path)], r.rpa_proposals, r.rpa_min_score, backbone=backbone,
+                         pooling=r.pooling, gem_p=r.gem_p)[0]
             res = query_database(rdb, d.ipa, d.rpa[d.query_rows(r.query_regions)], top_n=r.top_n,
                                  weights=tuple(r.candidate_weights), rerank=r.rerank)
             answers[str(path)] = [{"image_id": rdb.db.image_ids[int(i)], "x": float(c[0]), "y": float(c[1]),

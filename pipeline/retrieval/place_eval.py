@@ -19,14 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.retrieval.descriptors import GEM_P, POOLINGS, ipa_descriptor  # noqa: F401 (POOLINGS: stages.places)
 from pipeline.retrieval.metrics import map_at, recall_at, relevance
 from pipeline.retrieval.place_set import load_places
 from pipeline.retrieval.whitening import PCAWhitening, ShrinkageWhitening, l2_normalize
 
-POOLINGS = ("sum", "gem")
 WHITENINGS = ("none", "pca", "shrinkage")
 RECALL_AT = (1, 5, 10)
-GEM_P = 3.0
 
 
 @dataclass(frozen=True)
@@ -44,13 +43,9 @@ class Variant:
 
 def pool(fmap: np.ndarray, pooling: str, p: float = GEM_P) -> np.ndarray:
     """(C,) of a (C, h, w) map: sum over positions, or generalized mean (Radenovic et al.) of the map
-    clamped at 1e-6 (a Lite trunk's linear bottleneck has negative activations), l2-normalised."""
-    x = np.asarray(fmap, dtype=np.float64).reshape(fmap.shape[0], -1)
-    if pooling == "sum":
-        return l2_normalize(x.sum(axis=1))
-    if pooling == "gem":
-        return l2_normalize(np.mean(np.maximum(x, 1e-6) ** p, axis=1) ** (1.0 / p))
-    raise ValueError(f"pooling must be one of {POOLINGS}, got '{pooling}'")
+    clamped at 1e-6 (a Lite trunk's linear bottleneck has negative activations), l2-normalised; the IPA's
+    pooling (`pipeline.retrieval.descriptors.ipa_descriptor`, what `extract` does with `retrieval.pooling`)."""
+    return ipa_descriptor(np.asarray(fmap, dtype=np.float64), pooling, p)  # float64: the sum as precise as GeM
 
 
 def load_tensor(path: Path, max_side: int | None, scale: float = 1.0):

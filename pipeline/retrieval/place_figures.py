@@ -47,6 +47,6 @@ def misses_figure(path: Path, ps: PlaceSet, ranked: np.ndarray, *, title: str, r
             ax.axis("off")
     fig.suptitle(f"{title}: {len(wrong)} of {int(has.sum())} queries with a wrong Top-1"
                  + (f" ({len(picks)} shown)" if len(picks) < len(wrong) else ""), fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.4 / (2.4 * n)))  # room for the title above the first row
     save_figure(fig, path)
     return {"queries": int(has.sum()), "wrong": len(wrong), "shown": len(picks)}

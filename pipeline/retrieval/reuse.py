@@ -2,39 +2,55 @@
 
 After `siteloc update`, most images of a site are the same files as before. An image's IPA and RPA rows
 depend only on its content and on the describer: the detector's weights, the retrieval backbone, the
-engine and the RPA settings. So rows are keyed by the image's sha256 and reused when the earlier
-extraction's describer key equals this one; every other image is described afresh. The result is the
-extraction a full run would write, row for row.
+engine, the IPA pooling and the RPA settings. So rows are keyed by the image's sha256 and reused when the
+earlier extraction's describer key equals this one; every other image is described afresh (an earlier
+extraction pooled otherwise is named in a warning and in report.json's `reuse.describer_differs`). The
+result is the extraction a full run would write, row for row.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.io import tables
 from pipeline.io.image_reuse import HASHES_FILE, EarlierImages
-from pipeline.retrieval.descriptors import ImageDescriptors
+from pipeline.retrieval.descriptors import ImageDescriptors, pooling_label, pooling_sets, recorded_pooling
+
+log = logging.getLogger(__name__)
 
 
 def describer_key(weights_sha256: str, settings: dict) -> str:
-    """sha256 of what an image's descriptors depend on besides the image."""
-    keep = {k: settings[k] for k in ("rpa_proposals", "rpa_min_score", "engine", "backbone") if k in settings}
+    """sha256 of what an image's descriptors depend on besides the image (`pooling`: absent for sum)."""
+    keep = {k: settings[k] for k in ("rpa_proposals", "rpa_min_score", "engine", "backbone", "pooling")
+            if k in settings}
     return hashlib.sha256((weights_sha256 + json.dumps(keep, sort_keys=True)).encode()).hexdigest()
 
 
 class ReusedDescriptors:
-    """The rows of an earlier extraction, by image sha256; empty when its describer differs (`matches`)."""
+    """The rows of an earlier extraction, by image sha256; empty when its describer differs (`matches`).
 
-    def __init__(self, directory: Path, describer: str):
+    `pooling`: this run's (retrieval.pooling, retrieval.gem_p); when the earlier extraction recorded
+    another, `differs` says so and a warning names both."""
+
+    def __init__(self, directory: Path, describer: str, *, pooling: tuple[str, float] | None = None):
         directory = Path(directory)
         earlier = EarlierImages(directory, describer, report_field="describer_sha256", stage="extract")
-        self.directory, self.matches = directory, earlier.matches
+        self.directory, self.matches, self.differs = directory, earlier.matches, None
         self._rows: dict[str, ImageDescriptors] = {}
         if not self.matches:
+            if pooling is not None:
+                was = recorded_pooling(json.loads((directory / "report.json").read_text()))
+                now = (pooling[0], float(pooling[1]) if pooling[0] == "gem" else None)
+                if was != now:
+                    self.differs = f"retrieval.pooling: {pooling_label(*was)} there, {pooling_label(*now)} here"
+                    log.warning("warning: %s: extracted with retrieval.pooling %s, this run pools %s: none of its "
+                                "rows are reused, every image is described afresh (extract with %s to reuse "
+                                "them)", directory, pooling_label(*was), pooling_label(*now), pooling_sets(*was))
             return
         sha = tables.read_table(directory / HASHES_FILE, "image_hashes").to_pydict()
         by_id = dict(zip(sha["image_id"], sha["sha256"], strict=True))

@@ -4,7 +4,9 @@ With a retrieval backbone other than the detector (`retrieval.backbone`), `descr
 backbone (outputs `backbone_map`, and `backbone_ipa` with a NetVLAD / GeM head) and `describer.json` its
 record under `retrieval_backbone` (name, stride, dims, weights and their sha256, outputs): the camera image
 is described by the backbone the database was extracted with, through the same `describe_graph_outputs`
-as `extract`.
+as `extract`. `describer.json`'s `ipa_pooling` (`sum` or `gem`, with `gem_p`) says how the IPA pools the
+map, as the database's extraction did (`retrieval.pooling`); a bundle exported before it was recorded has
+neither key and pools by sum.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.retrieval.descriptors import ImageDescriptors, describe_graph_outputs
+from pipeline.retrieval.descriptors import POOLINGS, ImageDescriptors, describe_graph_outputs
 from pipeline.runtime.bundle import BundleError
 
 OUTPUTS = ("feature_map", "proposals", "proposal_scores", "boxes", "scores", "labels")
@@ -52,8 +54,8 @@ def graph_outputs(meta: dict) -> list[str]:
 
 def describe_with(session, image: np.ndarray, meta: dict) -> ImageDescriptors:
     """IPA and RPA of one (3, H, W) image through an onnxruntime session of the detector graph, `meta` being
-    its describer.json (scale, stride, rpa_proposals, rpa_min_score, retrieval_backbone). `extract`
-    describes the database with this too."""
+    its describer.json (scale, stride, rpa_proposals, rpa_min_score, ipa_pooling, gem_p, retrieval_backbone).
+    `extract` describes the database with this too."""
     out = session.run(graph_outputs(meta), {"image": image})
     return describe_graph_outputs(out, meta, rpa_proposals=meta["rpa_proposals"], rpa_min_score=meta["rpa_min_score"])
 
@@ -69,6 +71,11 @@ class OnnxDescriber:
         self.session = ort.InferenceSession(str(onnx_path), options, providers=["CPUExecutionProvider"])
         self.image_hw = tuple(self.meta["image_hw"])
         self.backbone = self.meta.get("retrieval_backbone")  # None: the detector's own map
+        pooling, p = self.meta.get("ipa_pooling", "sum"), self.meta.get("gem_p", 3.0)
+        if pooling not in POOLINGS or not isinstance(p, (int, float)) or not 0 < p <= 20:
+            raise BundleError(f"{meta_path}: ipa_pooling {pooling!r} (gem_p {p!r}) is not one this runtime pools "
+                              f"with ({', '.join(POOLINGS)}; gem_p in (0, 20]): update siteloc, or export the "
+                              f"bundle again with this version")
         lacking = sorted(set(graph_outputs(self.meta)) - {o.name for o in self.session.get_outputs()})
         if lacking:
             raise BundleError(f"{onnx_path}: lacks the outputs {lacking} that {Path(meta_path).name} names; the "

@@ -82,6 +82,23 @@ def test_with_a_backbone_its_head_is_the_ipa_and_its_map_is_pooled_at_its_stride
         runtime.describe(np.zeros((40, 64, 3), np.uint8))
 
 
+def test_the_ipa_pools_as_describer_json_says(tmp_path):
+    """`ipa_pooling: gem` (retrieval.pooling of the database's extraction): the generalized mean of the map; a
+    describer.json without the key (an older bundle) sums; a pooling this runtime does not know is refused."""
+    from pipeline.retrieval.descriptors import ipa_descriptor
+
+    image, ref = _export(tmp_path, backbone=False, ipa_pooling="gem", gem_p=3.0)
+    d = OnnxDescriber(tmp_path / "d.onnx", tmp_path / "d.json").describe(image)
+    g = np.cbrt((np.maximum(ref[0], 1e-6).astype(np.float64) ** 3).mean(axis=(1, 2)))
+    np.testing.assert_allclose(d.ipa, g / np.linalg.norm(g), rtol=1e-5)
+    np.testing.assert_allclose(d.ipa, ipa_descriptor(ref[0], "gem"), rtol=1e-5)
+    assert d.rpa.shape == (3, 8)
+    for bad in ({"ipa_pooling": "max"}, {"ipa_pooling": "gem", "gem_p": 0}):
+        (tmp_path / "d.json").write_text(json.dumps({**json.loads((tmp_path / "d.json").read_text()), **bad}))
+        with pytest.raises(BundleError, match="not one this runtime pools with"):
+            OnnxDescriber(tmp_path / "d.onnx", tmp_path / "d.json")
+
+
 def test_a_describer_json_naming_outputs_the_graph_lacks_is_refused(tmp_path):
     _export(tmp_path, backbone=False)
     meta = json.loads((tmp_path / "d.json").read_text())
