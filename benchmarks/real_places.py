@@ -7,7 +7,8 @@ Writes a place_set.yaml for each shared set into --work (the images stay where t
 them): RTAB-Map's corridors (images 1-40 the database, 41-84 the queries, samples_GT.bmp the matches) and
 VPR-Bench's corridor (ref / query, query i matching ref i-2..i+2). --extra adds place sets or ingested sites
 (an office floor: `siteloc ingest` of `siteloc synth`). Each set is measured with every backbone, pooling
-(sum, gem), whitening (none, pca, shrinkage) and scale set, torch on --threads threads (the robot's figure is
+(sum, gem), whitening (none, pca, shrinkage) and scale set (with --detector, each one-scale variant also
+re-ranked by RPA), torch on --threads threads (the robot's figure is
 one core). Prints the machine, then per set the Markdown table of `evaluate-places` and, per whitening, the
 change of R@1 against no whitening over all sets, backbones and poolings (the "cannot hurt" check).
 """
@@ -40,6 +41,10 @@ def main() -> None:
     ap.add_argument("--scales", nargs="+", default=["1", "1/2"])
     ap.add_argument("--max-side", type=int, default=640)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--detector", type=Path, default=None,
+                    help="a train-detector output: also re-rank each one-scale variant by RPA")
+    ap.add_argument("--pooling", nargs="+", default=None)
+    ap.add_argument("--whitening", nargs="+", default=None)
     args = ap.parse_args()
 
     import torch
@@ -64,9 +69,10 @@ def main() -> None:
     docs = []
     for places in sets:
         t0 = time.perf_counter()
-        out = run_evaluate_places(load_config("demo"), inputs={"places": places},
+        out = run_evaluate_places(load_config("demo"), inputs={"places": places, "detector": args.detector},
                                   outputs={"out": args.work / "out" / Path(places).name}, backbones=args.backbone,
-                                  poolings=list(POOLINGS), whitenings=list(WHITENINGS), scales=scales,
+                                  poolings=args.pooling or list(POOLINGS),
+                                  whitenings=args.whitening or list(WHITENINGS), scales=scales,
                                   max_side=args.max_side, force=True, progress=sys.stderr.isatty())
         print(f"\n({time.perf_counter() - t0:.0f} s)\n")
         print((out / "report.md").read_text(), flush=True)
@@ -74,12 +80,15 @@ def main() -> None:
     print("### Whitening against none (R@1, every set x backbone x pooling x scales)\n")
     print("| whitening | better | same | worse | mean change | worst change |")
     print("| --- | --- | --- | --- | --- | --- |")
-    for wh in WHITENINGS[1:]:
+    for wh in [w for w in (args.whitening or WHITENINGS) if w != "none"]:
         diffs = []
         for doc in docs:
-            by = {(v["backbone"], v["pooling"], tuple(v["scales"]), v["whitening"]): v["recall@1"]
+            by = {(v["backbone"], v["pooling"], tuple(v["scales"]), v["whitening"], v["rerank"]): v["recall@1"]
                   for v in doc["variants"]}
-            diffs += [r - by[(b, p, s, "none")] for (b, p, s, w), r in by.items() if w == wh]
+            diffs += [r - by[(b, p, s, "none", rr)] for (b, p, s, w, rr), r in by.items()
+                      if w == wh and (b, p, s, "none", rr) in by]
+        if not diffs:
+            continue
         better = sum(d > 1e-9 for d in diffs)
         worse = sum(d < -1e-9 for d in diffs)
         print(f"| {wh} | {better} | {len(diffs) - better - worse} | {worse} | {sum(diffs) / len(diffs):+.3f} | "

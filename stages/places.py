@@ -22,7 +22,10 @@ Every combination of --backbone, --pooling, --whitening and --scales is one vari
 through the ImageNet trunk (longest side at most --max-side px), are pooled (sum: the paper's IPA; gem:
 generalized mean, p = 3), whitened on the database (none; pca: every dimension the database supports;
 shrinkage: regularised by the ratio of dimensions to images, docs/retrieval.md#whitening) and ranked by
-cosine similarity. --scales 1/2 describes each image at 1x and 2x and sums the two.
+cosine similarity. --scales 1/2 describes each image at 1x and 2x and sums the two. With --detector (a
+`siteloc train-detector` output) each one-scale variant is also re-ranked as the paper's second stage: its
+Top-N (retrieval.top_n) by RPA, the backbone's map max-pooled over the detector's proposals and detections
+(`+rpa` in the table).
 
 Writes into --out: report.md (R@1/5/10, mAP@4, dimensions and milliseconds per image of each variant,
 beside the baseline: sum pooling, no whitening, one scale), metrics.json, misses.png (the queries whose
@@ -49,6 +52,9 @@ def evaluate_places(
                                           "(pixels; 0: as recorded).")] = 640,
     run_stride: Annotated[int, typer.Option("--run-stride", min=1, help="With an ingested site: every Nth run "
                                             "frame is a query.")] = 10,
+    detector: Annotated[Path | None, typer.Option(
+        "--detector", help="A `siteloc train-detector` output: also re-rank each one-scale variant's Top-N by RPA "
+        "over the detector's regions.", show_default=False)] = None,
     weights: Annotated[list[str] | None, typer.Option(
         "--weights", help="BACKBONE=FILE: that backbone's weights from a local file (repeatable).")] = None,
     config: ConfigOpt = "demo",
@@ -74,7 +80,7 @@ def evaluate_places(
                 raise ConfigError(f"--scales {text!r}: each scale between 0.1 and 4")
             scale_sets.append(sc)
         result = run_evaluate_places(
-            load(config, set_), inputs={"places": places}, outputs={"out": out},
+            load(config, set_), inputs={"places": places, "detector": detector}, outputs={"out": out},
             backbones=backbone or ["lite0_s16", "lite0_s32"], poolings=pooling or list(POOLINGS),
             whitenings=whitening or list(WHITENINGS), scales=scale_sets, max_side=max_side or None,
             weights=_weights(weights), run_stride=run_stride, force=force, progress=sys.stderr.isatty())

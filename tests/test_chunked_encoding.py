@@ -21,6 +21,7 @@ from pipeline.chunked_encoding import (
     open_partial,
 )
 from pipeline.errors import SitelocError
+from tests.fixtures.log_capture import Warnings
 
 
 class Bar:
@@ -89,28 +90,6 @@ def test_another_runs_partial_folder_is_refused(files, tmp_path):
         open_partial(partial, {"stage": "t", "chunk": 5}, files[:-1])
 
 
-class Warnings:
-    """Collects the resume warnings, whether or not pytest's logging plugin is on."""
-
-    def __init__(self):
-        import logging
-
-        self.records, self.logger = [], logging.getLogger("pipeline.chunked_encoding")
-        self.handler = logging.Handler(logging.WARNING)
-        self.handler.emit = self.records.append
-
-    def __enter__(self):
-        self.logger.addHandler(self.handler)
-        return self
-
-    def __exit__(self, *exc):
-        self.logger.removeHandler(self.handler)
-
-    @property
-    def text(self) -> str:
-        return "\n".join(r.getMessage() for r in self.records)
-
-
 def _damage(path: Path, how: str) -> None:
     if how == "truncated":
         path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
@@ -135,7 +114,7 @@ def test_a_damaged_chunk_is_discarded_with_a_warning_and_computed_again(files, t
     _damage(chunk_path(partial, 2), how)
     open_partial(partial, {"stage": "t"}, files)
     calls = []
-    with Warnings() as warned:
+    with Warnings("pipeline.chunked_encoding") as warned:
         got = encode_in_chunks(files, partial, 5, lambda p: (calls.append(len(p)), byte_stats()(p))[1], Bar())
     assert calls == [5]  # only the damaged chunk
     assert f"{chunk_path(partial, 2)}: damaged resume chunk" in warned.text and "computed again" in warned.text
@@ -154,7 +133,7 @@ def test_an_unreadable_plan_starts_afresh_and_force_always_does(files, tmp_path,
         (partial / "plan.json").unlink()
     else:
         (partial / "plan.json").write_bytes(plan)
-    with Warnings() as warned:
+    with Warnings("pipeline.chunked_encoding") as warned:
         open_partial(partial, {"stage": "t"}, files)
     assert f"{partial}: resume folder discarded, no readable plan.json" in warned.text
     assert sorted(p.name for p in partial.iterdir()) == ["plan.json"]

@@ -5,6 +5,7 @@ For each backbone and set of scales the images go through the trunk once (longes
 fitted on the database with every dimension it supports, `shrinkage`: regularised by the ratio of
 dimensions to images) then make one variant. Queries are ranked against the database by cosine
 similarity (exact: a place set is small).
+With a detector, each one-scale variant is also re-ranked by RPA on its Top-N (`place_rerank`).
 Outputs: metrics.json (R@1/5/10, mAP@4, milliseconds per image on this machine, per variant),
 report.md (the table beside the sum-pooled, unwhitened ImageNet baseline), misses.png (the queries whose
 Top-1 is wrong under the best variant, beside that Top-1 and a true match) and config.yaml.
@@ -21,7 +22,7 @@ import numpy as np
 
 from pipeline.retrieval.descriptors import GEM_P, POOLINGS, ipa_descriptor  # noqa: F401 (POOLINGS: stages.places)
 from pipeline.retrieval.metrics import map_at, recall_at, relevance
-from pipeline.retrieval.place_set import load_places
+from pipeline.retrieval.place_set import load_places, load_tensor
 from pipeline.retrieval.whitening import PCAWhitening, ShrinkageWhitening, l2_normalize
 
 WHITENINGS = ("none", "pca", "shrinkage")
@@ -46,22 +47,6 @@ def pool(fmap: np.ndarray, pooling: str, p: float = GEM_P) -> np.ndarray:
     clamped at 1e-6 (a Lite trunk's linear bottleneck has negative activations), l2-normalised; the IPA's
     pooling (`pipeline.retrieval.descriptors.ipa_descriptor`, what `extract` does with `retrieval.pooling`)."""
     return ipa_descriptor(np.asarray(fmap, dtype=np.float64), pooling, p)  # float64: the sum as precise as GeM
-
-
-def load_tensor(path: Path, max_side: int | None, scale: float = 1.0):
-    """(3, H, W) float tensor in [0, 1] of an image, its longest side at most max_side, times `scale`."""
-    import torch
-
-    from pipeline.io.images import open_image
-
-    im = open_image(path)
-    w, h = im.size
-    f = scale * (min(1.0, max_side / max(w, h)) if max_side else 1.0)
-    if f != 1.0:
-        from PIL import Image
-
-        im = im.resize((max(1, round(w * f)), max(1, round(h * f))), Image.BILINEAR)
-    return torch.from_numpy(np.asarray(im, dtype=np.float32) / 255.0).permute(2, 0, 1).contiguous()
 
 
 def describe(backbone, paths: list[Path], scales: tuple[float, ...], poolings, max_side: int | None,
@@ -106,7 +91,11 @@ def whitened(kind: str, db: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.n
 
 def measure(db: np.ndarray, q: np.ndarray, positive: np.ndarray) -> tuple[dict, np.ndarray]:
     """Figures of one variant, and the ranking (Q, D) by cosine similarity."""
-    ranked = np.argsort(-(q @ db.T), axis=1, kind="stable")
+    return measure_ranking(np.argsort(-(q @ db.T), axis=1, kind="stable"), positive)
+
+
+def measure_ranking(ranked: np.ndarray, positive: np.ndarray) -> tuple[dict, np.ndarray]:
+    """R@1/5/10 and mAP@4 of a (Q, D) ranking."""
     rel = relevance(ranked, positive)
     has = positive.any(axis=1)
     figures = {f"recall@{n}": round(recall_at(rel, has, n), 4) for n in RECALL_AT}
@@ -117,9 +106,9 @@ def measure(db: np.ndarray, q: np.ndarray, positive: np.ndarray) -> tuple[dict, 
 def run_evaluate_places(cfg, *, inputs: dict[str, Path], outputs: dict[str, Path], backbones: list[str],
                         poolings: list[str], whitenings: list[str], scales: list[tuple[float, ...]],
                         max_side: int | None = 640, weights: dict[str, str] | None = None, run_stride: int = 10,
-                        force: bool = False,
-                        progress: bool = True) -> Path:
-    """Measure every variant on the place set `inputs['places']` (see module docstring)."""
+                        force: bool = False, progress: bool = True) -> Path:
+    """Measure every variant on the place set `inputs['places']` (see module docstring); with
+    `inputs['detector']` (a `train-detector` output) each one-scale variant is also re-ranked by RPA."""
     import torch
 
     from pipeline.config import write_effective_config
@@ -130,7 +119,13 @@ def run_evaluate_places(cfg, *, inputs: dict[str, Path], outputs: dict[str, Path
 
     ps = load_places(Path(inputs["places"]), run_stride=run_stride)
     out = Path(outputs["out"])
-    check_output(out, force=force, inputs=[ps.root])
+    read = [ps.root] + ([Path(inputs["detector"])] if inputs.get("detector") is not None else [])
+    check_output(out, force=force, inputs=read)
+    det = None
+    if inputs.get("detector") is not None:
+        from pipeline.detection.inference import load_detector
+
+        det = load_detector(Path(inputs["detector"]), device="cpu")
     rows, rankings = [], {}
     for name in backbones:
         bb = load_backbone(name, (weights or {}).get(name))
@@ -145,22 +140,44 @@ def run_evaluate_places(cfg, *, inputs: dict[str, Path], outputs: dict[str, Path
                     v = Variant(name, pooling, wh, tuple(sc))
                     d, qq, info = whitened(wh, db[pooling], q[pooling])
                     figures, ranked = measure(d, qq, ps.positive)
-                    rows.append({"variant": v.label, **asdict(v), **figures, "ms_per_image": round(ms, 1), **info,
-                                 "weights": bb.source})
+                    rows.append({"variant": v.label, **asdict(v), "rerank": None, **figures,
+                                 "ms_per_image": round(ms, 1), **info, "weights": bb.source})
                     rankings[v.label] = ranked
+        if det is not None and (1.0,) in [tuple(sc) for sc in scales]:
+            rows += _reranked_rows(cfg, det, name, bb, ps, rows, rankings, max_side, progress)
     best = max(rows, key=lambda r: (r["recall@1"], r["map@4"]))
     baseline = next((r for r in rows if r["pooling"] == "sum" and r["whitening"] == "none"
-                     and tuple(r["scales"]) == (1.0,)), None)
+                     and tuple(r["scales"]) == (1.0,) and r["rerank"] is None), None)
     doc = {"place_set": ps.name, "root": str(ps.root), "database": len(ps.database), "queries": len(ps.queries),
            "queries_with_positives": ps.queries_with_positives, "max_side": max_side, "variants": rows,
            "best": best["variant"], "baseline": None if baseline is None else baseline["variant"],
            "machine": machine_summary(), "threads": torch.get_num_threads()}
-    with atomic_dir(out, force=force, inputs=[ps.root]) as tmp:
+    with atomic_dir(out, force=force, inputs=read) as tmp:
         misses = misses_figure(tmp / "misses.png", ps, rankings[best["variant"]], title=f"{ps.name}: {best['variant']}")
         doc["misses"] = misses
         write_text_atomic(tmp / "metrics.json", json.dumps(doc, indent=2) + "\n")
         write_text_atomic(tmp / "report.md", render_report(doc))
         write_effective_config(cfg, tmp, stage="evaluate-places", inputs={"places": ps.root})
+    return out
+
+
+def _reranked_rows(cfg, det, name, bb, ps, rows, rankings, max_side, progress) -> list[dict]:
+    """The one-scale variants of backbone `name`, re-ranked by RPA on their Top-N (`place_rerank`)."""
+    from pipeline.retrieval.place_rerank import describe_regions, reranked
+
+    t0 = time.perf_counter()
+    r = cfg.retrieval
+    db = describe_regions(det, {name: bb}, ps.database, max_side, r, progress)[name]
+    q = describe_regions(det, {name: bb}, ps.queries, max_side, r, progress)[name]
+    ms = 1000.0 * (time.perf_counter() - t0) / (len(ps.database) + len(ps.queries))
+    out = []
+    for row in [x for x in rows if x["backbone"] == name and tuple(x["scales"]) == (1.0,) and x["rerank"] is None]:
+        ranked = reranked(rankings[row["variant"]], db, q, row["whitening"] != "none", r.top_n)
+        figures, _ = measure_ranking(ranked, ps.positive)
+        label = f"{row['variant']} +rpa"
+        rankings[label] = ranked
+        out.append({**row, **figures, "variant": label, "rerank": f"rpa top {r.top_n}",
+                    "ms_per_image": round(row["ms_per_image"] + ms, 1)})
     return out
 
 

@@ -290,3 +290,19 @@ def load_places(path: Path, *, run_stride: int = 10) -> PlaceSet:
     if path.is_dir() and (path / "images.parquet").is_file() and not (path / FILE_NAME).is_file():
         return site_place_set(path, run_stride=run_stride)
     return read_place_set(path)
+
+
+def load_tensor(path: Path, max_side: int | None, scale: float = 1.0):
+    """(3, H, W) float tensor in [0, 1] of an image, its longest side at most max_side, times `scale`."""
+    import torch
+
+    from pipeline.io.images import open_image
+
+    im = open_image(path)
+    w, h = im.size
+    f = scale * (min(1.0, max_side / max(w, h)) if max_side else 1.0)
+    if f != 1.0:
+        from PIL import Image
+
+        im = im.resize((max(1, round(w * f)), max(1, round(h * f))), Image.BILINEAR)
+    return torch.from_numpy(np.asarray(im, dtype=np.float32) / 255.0).permute(2, 0, 1).contiguous()

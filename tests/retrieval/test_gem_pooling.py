@@ -4,7 +4,6 @@ and `export` to the runtime describer; closed forms on made-up maps, then the mi
 from __future__ import annotations
 
 import json
-import logging
 
 import numpy as np
 import pytest
@@ -18,6 +17,7 @@ from pipeline.retrieval.descriptors import (
     recorded_pooling,
 )
 from pipeline.retrieval.whitening import l2_normalize
+from tests.fixtures.log_capture import Warnings
 
 
 def test_gem_closed_forms_and_sum_unchanged():
@@ -160,24 +160,6 @@ def test_extract_pools_the_maps_by_gem_and_records_it(gem, micro_extraction):
     np.testing.assert_allclose(rpa[a], srpa[b], atol=1e-5)
 
 
-class _Log:
-    def __init__(self, name):
-        self.records, self.logger = [], logging.getLogger(name)
-        self.handler = logging.Handler(logging.WARNING)
-        self.handler.emit = self.records.append
-
-    def __enter__(self):
-        self.logger.addHandler(self.handler)
-        return self
-
-    def __exit__(self, *exc):
-        self.logger.removeHandler(self.handler)
-
-    @property
-    def text(self):
-        return "\n".join(r.getMessage() for r in self.records)
-
-
 def test_reuse_takes_no_rows_of_an_extraction_pooled_otherwise(gem, micro_extraction):
     from pipeline.retrieval.reuse import ReusedDescriptors, describer_key
     from pipeline.sitegen.asset_cache import sha256_file
@@ -193,12 +175,12 @@ def test_reuse_takes_no_rows_of_an_extraction_pooled_otherwise(gem, micro_extrac
     assert len(ReusedDescriptors(ex, gem_key, pooling=("gem", 3.0))) > 0
     for earlier, key, now, was in ((micro_extraction, gem_key, ("gem", 3.0), "sum"),
                                    (ex, sum_key, ("sum", 3.0), "gem (p 3.0)")):
-        with _Log("pipeline.retrieval.reuse") as log:
+        with Warnings("pipeline.retrieval.reuse") as log:
             reused = ReusedDescriptors(earlier, key, pooling=now)
         assert not reused.matches and len(reused) == 0
         assert reused.differs.startswith(f"retrieval.pooling: {was} there")
         assert f"extracted with retrieval.pooling {was}" in log.text and "described afresh" in log.text
-    with _Log("pipeline.retrieval.reuse") as log:  # another pooling p only
+    with Warnings("pipeline.retrieval.reuse") as log:  # another pooling p only
         assert ReusedDescriptors(ex, "0" * 64, pooling=("gem", 2.0)).differs is not None
     assert "--set retrieval.pooling=gem --set retrieval.gem_p=3.0" in log.text
 

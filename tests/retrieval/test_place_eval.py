@@ -111,3 +111,47 @@ def test_the_command_refuses_unknown_choices_in_one_line(tmp_path):
                           (["--weights", "lite0_s16"], "expected BACKBONE=FILE")):
         res = CliRunner().invoke(app, ["evaluate-places", str(tmp_path), "--out", str(tmp_path / "o"), *args])
         assert res.exit_code == 1 and message in res.output, res.output
+
+
+def test_rpa_reranking_permutes_the_top_n_by_region_matches():
+    from pipeline.retrieval.place_rerank import Regions, reranked
+    from pipeline.retrieval.whitening import l2_normalize
+
+    rng = np.random.default_rng(3)
+    per_image = [l2_normalize(rng.normal(size=(3, 16))) for _ in range(6)]
+    db = Regions(np.concatenate(per_image), np.arange(0, 19, 3), [np.arange(3)] * 6)
+    # query 0 shows database image 4's regions; query 1 shows image 0's, which its first stage ranks last
+    q_rows = np.concatenate([per_image[4], per_image[0]])
+    queries = Regions(q_rows, np.array([0, 3, 6]), [np.arange(3), np.arange(3)])
+    first = np.array([[1, 2, 4, 3, 5, 0], [5, 4, 3, 2, 1, 0]])
+    out = reranked(first, db, queries, whiten=False, top_n=4)
+    assert out[0, 0] == 4 and sorted(out[0, :4]) == sorted(first[0, :4])  # a permutation of the Top-4
+    np.testing.assert_array_equal(out[0, 4:], first[0, 4:])  # the rest as the first stage left it
+    np.testing.assert_array_equal(out[1, 4:], first[1, 4:])  # image 0 is outside the Top-4: not found
+    assert sorted(out[1, :4]) == sorted(first[1, :4])
+
+
+def test_the_command_reranks_with_a_detector(tmp_path, micro_site):
+    from stages.app import app
+
+    _, _, model = micro_site
+    root = tmp_path / "set"
+    (root / "ref").mkdir(parents=True)
+    (root / "query").mkdir()
+    for k in range(5):
+        base = scene(k)
+        Image.fromarray(base).save(root / "ref" / f"{k}.png")
+        Image.fromarray((np.roll(base, (3, 5), axis=(0, 1)) * 0.9).astype(np.uint8)).save(root / "query" / f"{k}.png")
+    (root / "place_set.yaml").write_text(yaml.safe_dump({"database": "ref", "queries": "query",
+                                                          "positives": {"aligned": 0}}))
+    out = tmp_path / "out"
+    res = CliRunner().invoke(app, ["evaluate-places", str(root), "--out", str(out), "--backbone", "lite0_s16",
+                                   "--pooling", "sum", "--whitening", "none", "--whitening", "pca",
+                                   "--detector", str(model), "--set", "retrieval.top_n=3"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((out / "metrics.json").read_text())
+    labels = [v["variant"] for v in doc["variants"]]
+    assert labels == ["lite0_s16 sum none", "lite0_s16 sum pca", "lite0_s16 sum none +rpa", "lite0_s16 sum pca +rpa"]
+    plain, rpa = doc["variants"][0], doc["variants"][2]
+    assert rpa["rerank"] == "rpa top 3" and rpa["recall@5"] == plain["recall@5"]  # only the Top-3 move
+    assert "| lite0_s16 sum none +rpa |" in (out / "report.md").read_text()
