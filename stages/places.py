@@ -70,6 +70,13 @@ def evaluate_places(
             bad = sorted(set(given or ()) - set(allowed))
             if bad:
                 raise ConfigError(f"{what} {', '.join(bad)}: expected one of {', '.join(allowed)}")
+        from pipeline.retrieval.backbones import BACKBONES
+
+        named = [b for b in BACKBONES if b != "detector"]
+        bad = sorted(set(backbone or ()) - set(named))
+        if bad:
+            raise ConfigError(f"--backbone {', '.join(bad)}: expected one of {', '.join(named)} (the detector's trunk "
+                              "is measured by evaluate-retrieval on a site)")
         scale_sets = []
         for text in scales or ["1"]:
             try:

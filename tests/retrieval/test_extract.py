@@ -153,7 +153,7 @@ def test_a_damaged_resume_chunk_is_computed_again_and_force_starts_clean(site, t
                                                                         monkeypatch):
     """A corrupted chunk in the resume folder made every rerun fail, --force included."""
     import pipeline.retrieval.extract as X
-    from tests.test_chunked_encoding import Warnings
+    from tests.fixtures.log_capture import Warnings
 
     _, ing, model = site
     cfg = load_config("ci", [*SETS, "retrieval.engine=torch"])
@@ -173,7 +173,7 @@ def test_a_damaged_resume_chunk_is_computed_again_and_force_starts_clean(site, t
     partial = tmp_path / "d.partial"
     ipa0 = partial / "ipa-00000.parquet"
     ipa0.write_bytes(ipa0.read_bytes()[: ipa0.stat().st_size // 2])  # truncated
-    with Warnings() as warned:
+    with Warnings("pipeline.chunked_encoding") as warned:
         out = X.run_extract(cfg, **args)
     assert f"{ipa0}: damaged resume chunk" in warned.text and "computed again" in warned.text
     assert not partial.exists()

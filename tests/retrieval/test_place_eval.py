@@ -108,7 +108,8 @@ def test_the_command_refuses_unknown_choices_in_one_line(tmp_path):
 
     for args, message in ((["--pooling", "max"], "--pooling max: expected one of sum, gem"),
                           (["--scales", "1/x"], "--scales '1/x': numbers joined by /"),
-                          (["--weights", "lite0_s16"], "expected BACKBONE=FILE")):
+                          (["--weights", "lite0_s16"], "expected BACKBONE=FILE"),
+                          (["--backbone", "detector"], "--backbone detector: expected one of lite0_s16")):
         res = CliRunner().invoke(app, ["evaluate-places", str(tmp_path), "--out", str(tmp_path / "o"), *args])
         assert res.exit_code == 1 and message in res.output, res.output
 
