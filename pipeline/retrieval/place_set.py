@@ -293,8 +293,9 @@ def load_places(path: Path, *, run_stride: int = 10) -> PlaceSet:
 
 
 def load_tensor(path: Path, max_side: int | None, scale: float = 1.0):
-    """(3, H, W) float tensor in [0, 1] of an image, its longest side at most max_side, times `scale`."""
-    import torch
+    """(3, H, W) float tensor in [0, 1] of an image, its longest side at most max_side, times `scale`
+    (`detection.inference.load_image`'s conversion, after the resize)."""
+    from torchvision.transforms.functional import pil_to_tensor
 
     from pipeline.io.images import open_image
 
@@ -305,4 +306,4 @@ def load_tensor(path: Path, max_side: int | None, scale: float = 1.0):
         from PIL import Image
 
         im = im.resize((max(1, round(w * f)), max(1, round(h * f))), Image.BILINEAR)
-    return torch.from_numpy(np.asarray(im, dtype=np.float32) / 255.0).permute(2, 0, 1).contiguous()
+    return pil_to_tensor(im).float() / 255.0

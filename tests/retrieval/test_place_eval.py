@@ -69,22 +69,27 @@ def scene(seed: int) -> np.ndarray:
     return np.asarray(im)
 
 
+def seen_again(root, n: int):
+    """A place set of `n` scenes (ref/) each seen again (query/), matched by position: query k is ref k a
+    few pixels to the side, a little darker (pixel noise on flat synthetic walls changes ImageNet features
+    more than another scene does: not a trait of photographs)."""
+    (root / "ref").mkdir(parents=True)
+    (root / "query").mkdir()
+    for k in range(n):
+        base = scene(k)
+        Image.fromarray(base).save(root / "ref" / f"{k}.png")
+        again = np.roll(base, (3, 5), axis=(0, 1)).astype(float) * 0.9
+        Image.fromarray(np.clip(again, 0, 255).astype(np.uint8)).save(root / "query" / f"{k}.png")
+    (root / "place_set.yaml").write_text(yaml.safe_dump({"database": "ref", "queries": "query",
+                                                          "positives": {"aligned": 0}}))
+    return root
+
+
 def test_the_command_on_a_generated_place_set(tmp_path):
     from stages.app import app
 
-    root = tmp_path / "set"
-    (root / "ref").mkdir(parents=True)
-    (root / "query").mkdir()
-    for k in range(8):
-        base = scene(k)
-        Image.fromarray(base).save(root / "ref" / f"{k}.png")
-        # the same place seen again: a few pixels to the side, a little darker (pixel noise on flat synthetic
-        # walls changes ImageNet features more than another scene does: not a trait of photographs)
-        again = np.roll(base, (3, 5), axis=(0, 1)).astype(float) * 0.9
-        Image.fromarray(np.clip(again, 0, 255).astype(np.uint8)).save(root / "query" / f"{k}.png")
+    root = seen_again(tmp_path / "set", 8)
     Image.fromarray(scene(99)).save(root / "query" / "7.png")  # its place repainted: nothing alike to find
-    (root / "place_set.yaml").write_text(yaml.safe_dump({"database": "ref", "queries": "query",
-                                                              "positives": {"aligned": 0}}))
     out = tmp_path / "out"
     res = CliRunner().invoke(app, ["evaluate-places", str(root), "--out", str(out), "--backbone", "lite0_s16",
                                    "--whitening", "none", "--whitening", "shrinkage", "--scales", "1",
@@ -136,15 +141,7 @@ def test_the_command_reranks_with_a_detector(tmp_path, micro_site):
     from stages.app import app
 
     _, _, model = micro_site
-    root = tmp_path / "set"
-    (root / "ref").mkdir(parents=True)
-    (root / "query").mkdir()
-    for k in range(5):
-        base = scene(k)
-        Image.fromarray(base).save(root / "ref" / f"{k}.png")
-        Image.fromarray((np.roll(base, (3, 5), axis=(0, 1)) * 0.9).astype(np.uint8)).save(root / "query" / f"{k}.png")
-    (root / "place_set.yaml").write_text(yaml.safe_dump({"database": "ref", "queries": "query",
-                                                          "positives": {"aligned": 0}}))
+    root = seen_again(tmp_path / "set", 5)
     out = tmp_path / "out"
     res = CliRunner().invoke(app, ["evaluate-places", str(root), "--out", str(out), "--backbone", "lite0_s16",
                                    "--pooling", "sum", "--whitening", "none", "--whitening", "pca",
